@@ -1,0 +1,37 @@
+# The two commands: `make demo` and `make test`. Both create .venv first when it is missing or stale.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+BAG ?=
+CONFIG ?=
+DEMO_SCENE := bags/demo_scene
+DEMO_BAG := bags/demo_scene_bag
+
+.PHONY: venv test demo build clean-build bench
+
+venv: $(STAMP)
+
+# Re-run only when the pinned requirements or the core's packaging change (fast no-op otherwise).
+$(STAMP): requirements.txt src/neb_slam_core/setup.cfg src/neb_slam_core/setup.py
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade "pip>=24"
+	$(PY) -m pip install --quiet -r requirements.txt
+	$(PY) -m pip install --quiet --no-build-isolation --no-deps -e src/neb_slam_core
+	@touch $(STAMP)
+
+test: venv
+	$(PY) -m pytest -q tests
+
+build: venv
+	source $(VENV)/bin/activate && colcon build --base-paths src
+
+clean-build:
+	rm -rf build install log
+
+demo: venv
+	@$(PY) tools/demo.py --scene $(DEMO_SCENE) --bag $(DEMO_BAG) $(if $(BAG),--replay $(BAG)) $(if $(CONFIG),--config $(CONFIG))
+
+bench: venv
+	$(PY) benchmarks/encoding.py

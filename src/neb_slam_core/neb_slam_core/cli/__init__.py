@@ -1,0 +1,1 @@
+"""The ``neb-slam`` command line: one module per sub-command (see ``main.COMMANDS``)."""

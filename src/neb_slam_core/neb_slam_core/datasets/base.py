@@ -1,0 +1,235 @@
+"""The dataset interface, the loader registry and helpers every loader shares.
+
+A loader is a :class:`Dataset`: it indexes its files when constructed (cheap) and reads one frame per
+``__getitem__`` (lazy). Loaders register themselves under a format name with :func:`register`;
+:func:`open_dataset` opens a path by name or by asking each loader whether it recognises the layout.
+"""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+import cv2
+import numpy as np
+
+from ..errors import DatasetError
+from ..types import Intrinsics, RgbdFrame
+
+log = logging.getLogger(__name__)
+
+
+class Dataset(ABC, Sequence[RgbdFrame]):
+    """A sequence of RGB-D frames with lazy reading.
+
+    Subclasses set ``self.root`` and implement ``__len__`` and :meth:`_load`; indexing checks bounds,
+    supports negative indices, and stamps the frame's ``index``.
+    """
+
+    #: format name under which the loader is registered (set by :func:`register`)
+    name: str = ""
+    root: Path
+
+    @abstractmethod
+    def __len__(self) -> int: ...
+
+    @abstractmethod
+    def _load(self, i: int) -> RgbdFrame:
+        """Read frame ``i`` (0 <= i < len)."""
+
+    @classmethod
+    def detect(cls, path: Path) -> bool:
+        """True when ``path`` looks like this loader's layout (used by :func:`open_dataset`)."""
+        return False
+
+    def __getitem__(self, i):  # type: ignore[override]
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"{self.name} dataset {self.root}: frame {i} out of range (0..{n - 1})")
+        i = i % n
+        frame = self._load(i)
+        frame.index = i
+        return frame
+
+    def __iter__(self) -> Iterator[RgbdFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def has_ground_truth(self) -> bool:
+        """Whether frames carry ``T_world_cam``; loaders with optional ground truth override this."""
+        return True
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.root} ({len(self)} frames)>"
+
+
+_REGISTRY: dict[str, type[Dataset]] = {}
+
+
+def register(name: str) -> Callable[[type[Dataset]], type[Dataset]]:
+    """Class decorator: register a loader under ``name`` (lower case, e.g. ``'tum'``)."""
+
+    def deco(cls: type[Dataset]) -> type[Dataset]:
+        if name in _REGISTRY and _REGISTRY[name] is not cls:
+            raise ValueError(f"dataset format {name!r} registered twice")
+        cls.name = name
+        _REGISTRY[name] = cls
+        return cls
+
+    return deco
+
+
+def dataset_formats() -> list[str]:
+    """Names of all registered formats."""
+    _import_loaders()
+    return sorted(_REGISTRY)
+
+
+def loader_class(name: str) -> type[Dataset]:
+    _import_loaders()
+    try:
+        return _REGISTRY[name.lower()]
+    except KeyError:
+        raise DatasetError(None, f"unknown dataset format {name!r}; choose one of: {', '.join(sorted(_REGISTRY))}") from None
+
+
+def open_dataset(path: str | Path, fmt: str | None = None, **options) -> Dataset:
+    """Open ``path`` with the loader ``fmt``, or detect the format from the layout when ``fmt`` is None."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(path, "no such file or directory")
+    if fmt is not None:
+        return loader_class(fmt)(path, **options)
+    _import_loaders()
+    matches = [cls for cls in _REGISTRY.values() if cls.detect(path)]
+    if not matches:
+        raise DatasetError(path, f"cannot tell the dataset format from the layout; pass one of: {', '.join(sorted(_REGISTRY))}")
+    if len(matches) > 1:
+        names = ", ".join(sorted(cls.name for cls in matches))
+        raise DatasetError(path, f"layout matches several formats ({names}); pass the format explicitly")
+    return matches[0](path, **options)
+
+
+def _import_loaders() -> None:
+    """Import the loader modules so that they register (kept lazy: rosbags is only needed for bags)."""
+    from . import _all  # noqa: F401
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers shared by the loaders
+
+
+def read_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a colour image as ``(H, W, 3)`` uint8 RGB; resize (area) to ``size`` = (W, H) when given."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DatasetError(path, "colour image missing or unreadable (expected an 8-bit PNG/JPEG)")
+    if img.dtype != np.uint8:
+        raise DatasetError(path, f"colour image must be 8-bit, got {img.dtype}")
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    elif img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    else:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(img)
+
+
+def read_depth(path: Path, scale: float, invalid_value: int | None = None,
+               expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a 16-bit depth PNG as float32 metres (``value / scale``; 0 and ``invalid_value`` -> 0).
+
+    ``expected_size`` = (W, H) is checked when given.
+    """
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise DatasetError(path, "depth image missing or unreadable (expected a 16-bit single-channel PNG)")
+    if raw.ndim != 2 or raw.dtype != np.uint16:
+        shape = "x".join(map(str, raw.shape))
+        raise DatasetError(path, f"depth image must be 16-bit single-channel, got {raw.dtype} with shape {shape}")
+    if expected_size is not None and (raw.shape[1], raw.shape[0]) != tuple(expected_size):
+        raise DatasetError(path, f"depth image is {raw.shape[1]}x{raw.shape[0]}, expected {expected_size[0]}x{expected_size[1]}")
+    depth = raw.astype(np.float32) / np.float32(scale)
+    if invalid_value is not None:
+        depth[raw == invalid_value] = 0.0
+    return depth
+
+
+def read_matrix(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:
+    """Read whitespace-separated numbers from ``path`` into an array of ``shape``."""
+    if not path.is_file():
+        raise DatasetError(path, f"{what} file not found")
+    try:
+        values = np.array(path.read_text().split(), dtype=np.float64)
+    except ValueError:
+        raise DatasetError(path, f"{what}: expected whitespace-separated numbers") from None
+    if values.size != int(np.prod(shape)):
+        raise DatasetError(path, f"{what}: expected {int(np.prod(shape))} numbers ({'x'.join(map(str, shape))}), got {values.size}")
+    return values.reshape(shape)
+
+
+def associate(query_ns: np.ndarray, ref_ns: np.ndarray, max_dt_ns: int) -> np.ndarray:
+    """For each query stamp, the index of the nearest reference stamp within ``max_dt_ns``, else -1.
+
+    Both arrays are int64 nanoseconds; ``ref_ns`` need not be sorted.
+    """
+    query_ns = np.asarray(query_ns, dtype=np.int64)
+    ref_ns = np.asarray(ref_ns, dtype=np.int64)
+    if len(ref_ns) == 0:
+        return np.full(len(query_ns), -1, dtype=np.int64)
+    order = np.argsort(ref_ns, kind="stable")
+    ref_sorted = ref_ns[order]
+    pos = np.searchsorted(ref_sorted, query_ns)
+    lo = np.clip(pos - 1, 0, len(ref_sorted) - 1)
+    hi = np.clip(pos, 0, len(ref_sorted) - 1)
+    pick = np.where(np.abs(ref_sorted[hi] - query_ns) < np.abs(query_ns - ref_sorted[lo]), hi, lo)
+    ok = np.abs(ref_sorted[pick] - query_ns) <= max_dt_ns
+    return np.where(ok, order[pick], -1)
+
+
+def associate_unique(query_ns: np.ndarray, ref_ns: np.ndarray, max_dt_ns: int) -> np.ndarray:
+    """Like :func:`associate` but each reference is used at most once (greedy by time gap).
+
+    This is the TUM benchmark's ``associate.py`` rule: candidate pairs within ``max_dt_ns`` are taken
+    in order of increasing gap, skipping pairs whose query or reference is already matched.
+    """
+    query_ns = np.asarray(query_ns, dtype=np.int64)
+    ref_ns = np.asarray(ref_ns, dtype=np.int64)
+    out = np.full(len(query_ns), -1, dtype=np.int64)
+    if len(query_ns) == 0 or len(ref_ns) == 0:
+        return out
+    order = np.argsort(ref_ns, kind="stable")
+    ref_sorted = ref_ns[order]
+    # candidates: every reference within the window of each query (windows are short, so few per query)
+    lo = np.searchsorted(ref_sorted, query_ns - max_dt_ns, side="left")
+    hi = np.searchsorted(ref_sorted, query_ns + max_dt_ns, side="right")
+    counts = hi - lo
+    qi = np.repeat(np.arange(len(query_ns)), counts)
+    ri = np.concatenate([np.arange(a, b) for a, b in zip(lo, hi)]) if counts.sum() else np.zeros(0, np.int64)
+    gaps = np.abs(ref_sorted[ri] - query_ns[qi])
+    used_ref = np.zeros(len(ref_ns), dtype=bool)
+    for k in np.argsort(gaps, kind="stable"):
+        q, r = qi[k], ri[k]
+        if out[q] < 0 and not used_ref[r]:
+            out[q] = order[r]
+            used_ref[r] = True
+    return out
+
+
+def warn_skipped(root: Path, n_skipped: int, n_total: int, why: str) -> None:
+    """One summary warning for frames a loader skipped (never one warning per frame)."""
+    if n_skipped:
+        log.warning("%s: skipped %d of %d frames: %s", root, n_skipped, n_total, why)
+
+
+def check_intrinsics(intr: Intrinsics, source: Path | str) -> Intrinsics:
+    if not (intr.fx > 0 and intr.fy > 0 and intr.width > 0 and intr.height > 0):
+        raise DatasetError(source, f"invalid intrinsics {intr}")
+    return intr

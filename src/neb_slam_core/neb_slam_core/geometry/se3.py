@@ -1,0 +1,77 @@
+"""SE(3) helpers on 4x4 float64 numpy matrices.
+
+Quaternions follow the TUM / ROS convention: Hamilton, ``(qx, qy, qz, qw)`` with w last.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# OpenGL camera axes (x right, y up, z backward) -> OpenCV optical axes (x right, y down, z forward).
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The 4x4 transform with rotation ``R`` (3, 3) and translation ``t`` (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform ``(..., 4, 4)`` without a general matrix inverse."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ t[..., None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def pose_from_tum(txyz_qxyzw: np.ndarray) -> np.ndarray:
+    """``(..., 7)`` rows ``tx ty tz qx qy qz qw`` -> ``(..., 4, 4)`` poses."""
+    v = np.asarray(txyz_qxyzw, dtype=np.float64)
+    flat = v.reshape(-1, 7)
+    T = np.tile(np.eye(4), (len(flat), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(flat[:, 3:]).as_matrix()
+    T[:, :3, 3] = flat[:, :3]
+    return T.reshape(v.shape[:-1] + (4, 4))
+
+
+def pose_to_tum(T: np.ndarray) -> np.ndarray:
+    """``(..., 4, 4)`` poses -> ``(..., 7)`` rows ``tx ty tz qx qy qz qw`` (qw >= 0)."""
+    T = np.asarray(T, dtype=np.float64)
+    flat = T.reshape(-1, 4, 4)
+    q = Rotation.from_matrix(flat[:, :3, :3]).as_quat()
+    q[q[:, 3] < 0] *= -1.0
+    out = np.concatenate([flat[:, :3, 3], q], axis=1)
+    return out.reshape(T.shape[:-2] + (7,))
+
+
+def rotation_error(R: np.ndarray) -> float:
+    """How far ``R`` (3, 3) is from a proper rotation: max |R^T R - I| and |det R - 1|."""
+    return float(max(np.abs(R.T @ R - np.eye(3)).max(), abs(np.linalg.det(R) - 1.0)))
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
+    """True when ``T`` is a finite 4x4 rigid transform (rotation within ``tol``, last row 0 0 0 1)."""
+    T = np.asarray(T)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        return False
+    return rotation_error(T[:3, :3]) <= tol
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """Project the rotation part of a nearly rigid ``T`` onto SO(3) (SVD), keep the translation."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return make_pose(R, T[:3, 3])

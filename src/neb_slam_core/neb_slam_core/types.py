@@ -1,0 +1,76 @@
+"""Typed containers passed between the stages of the pipeline.
+
+Conventions (DESIGN.md section 3): poses are camera-to-world ``T_world_cam`` 4x4 float64 with OpenCV
+optical axes (x right, y down, z forward), metres; depth is float32 metres with 0 = invalid; colour is
+uint8 RGB; time is integer nanoseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of an image of ``width`` x ``height`` pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def K(self) -> np.ndarray:
+        """The 3x3 camera matrix (float64)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, width: int, height: int) -> "Intrinsics":
+        """The same camera for an image resized to ``width`` x ``height``."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
+
+    def as_tuple(self) -> tuple[float, float, float, float, int, int]:
+        return (self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+
+@dataclass
+class RgbdFrame:
+    """One RGB-D frame.
+
+    Attributes:
+        rgb: ``(H, W, 3)`` uint8 RGB.
+        depth_m: ``(H, W)`` float32 depth in metres, 0 where invalid.
+        intrinsics: the camera of both images (colour is registered to depth).
+        stamp_ns: capture time in integer nanoseconds.
+        T_world_cam: optional ground-truth camera-to-world pose, ``(4, 4)`` float64.
+        index: position of the frame in its source sequence.
+    """
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    intrinsics: Intrinsics
+    stamp_ns: int
+    T_world_cam: np.ndarray | None = None
+    index: int = 0
+    extras: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        h, w = self.depth_m.shape[:2]
+        if self.rgb.shape != (h, w, 3) or self.rgb.dtype != np.uint8:
+            raise ValueError(
+                f"RgbdFrame: rgb must be ({h}, {w}, 3) uint8 to match depth, got {self.rgb.shape} {self.rgb.dtype}"
+            )
+        if self.depth_m.dtype != np.float32 or self.depth_m.ndim != 2:
+            raise ValueError(f"RgbdFrame: depth_m must be (H, W) float32, got {self.depth_m.shape} {self.depth_m.dtype}")
+        if (w, h) != (self.intrinsics.width, self.intrinsics.height):
+            raise ValueError(
+                f"RgbdFrame: image is {w}x{h} but intrinsics are for {self.intrinsics.width}x{self.intrinsics.height}"
+            )
+
+    @property
+    def stamp_s(self) -> float:
+        return self.stamp_ns * 1e-9

@@ -8,14 +8,16 @@ A loader is a :class:`Dataset`: it indexes its files when constructed (cheap) an
 from __future__ import annotations
 
 import logging
+import re
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
 
-from ..errors import DatasetError
+from ..errors import ConfigError, DatasetError
 from ..types import Intrinsics, RgbdFrame
 
 log = logging.getLogger(__name__)
@@ -233,3 +235,94 @@ def check_intrinsics(intr: Intrinsics, source: Path | str) -> Intrinsics:
     if not (intr.fx > 0 and intr.fy > 0 and intr.width > 0 and intr.height > 0):
         raise DatasetError(source, f"invalid intrinsics {intr}")
     return intr
+
+
+def numbered_files(folder: Path, pattern: str, what: str) -> dict[int, Path]:
+    """Files of ``folder`` whose whole name matches ``pattern``, keyed by frame number, in numeric order.
+
+    ``pattern`` is a regular expression whose first group is the frame number (``r"frame(\\d+)\\.jpg"``).
+    Sorting by the number, not the name, keeps ``10.jpg`` after ``9.jpg``.
+    """
+    if not folder.is_dir():
+        raise DatasetError(folder, f"{what} folder not found")
+    rx = re.compile(pattern)
+    found: dict[int, Path] = {}
+    for path in folder.iterdir():
+        m = rx.fullmatch(path.name)
+        if m is None:
+            continue
+        n = int(m.group(1))
+        if n in found:
+            raise DatasetError(path, f"{what}: frame number {n} is also used by {found[n].name}")
+        found[n] = path
+    return dict(sorted(found.items()))
+
+
+def fps_stamp_ns(frame_number: int, fps: float) -> int:
+    """Stamp of a frame of a sequence without time stamps: ``frame_number / fps`` seconds, in integer ns."""
+    return int(round(frame_number * 1e9 / fps))
+
+
+def check_fps(fps: float) -> float:
+    """``fps`` as a float; :class:`ConfigError` unless it is a finite positive number."""
+    try:
+        value = float(fps)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (0.0 < value < float("inf")):
+        raise ConfigError(f"fps must be a positive number of frames per second, got {fps!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    """Where one frame of a :class:`FrameListDataset` lives, with its stamp and pose (``(4, 4)`` or None)."""
+
+    rgb_path: Path
+    depth_path: Path
+    stamp_ns: int
+    T_world_cam: np.ndarray | None
+
+
+class FrameListDataset(Dataset):
+    """A loader whose ``__init__`` lists its frames as :class:`FrameFiles` and whose frames read alike.
+
+    Subclasses set ``root``, ``intrinsics``, ``depth_scale`` (raw value per metre), ``frames`` and, when
+    they apply, ``depth_invalid_value`` and ``resize_rgb`` (colour resized to the depth size, area
+    interpolation; otherwise a colour image of another size is an error).
+    """
+
+    intrinsics: Intrinsics
+    depth_scale: float
+    depth_invalid_value: int | None = None
+    resize_rgb: bool = False
+    frames: list[FrameFiles]
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def stamps_ns(self) -> np.ndarray:
+        """``(N,)`` int64 stamps of the frames."""
+        return np.array([f.stamp_ns for f in self.frames], dtype=np.int64)
+
+    def _load(self, i: int) -> RgbdFrame:
+        f = self.frames[i]
+        size = (self.intrinsics.width, self.intrinsics.height)
+        depth = read_depth(f.depth_path, self.depth_scale, self.depth_invalid_value, expected_size=size)
+        rgb = read_rgb(f.rgb_path, size if self.resize_rgb else None)
+        if (rgb.shape[1], rgb.shape[0]) != size:
+            raise DatasetError(f.rgb_path, f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]} "
+                                           "(the size of the intrinsics)")
+        pose = None if f.T_world_cam is None else f.T_world_cam.copy()
+        return RgbdFrame(rgb, depth, self.intrinsics, f.stamp_ns, pose)
+
+
+def pair_by_number(root: Path, rgb_files: dict[int, Path], depth_files: dict[int, Path]) -> list[int]:
+    """Numbers of the colour frames that have a depth image of the same number, in order.
+
+    Colour frames without a depth partner are dropped with one summary warning.
+    """
+    keep = [n for n in rgb_files if n in depth_files]
+    warn_skipped(root, len(rgb_files) - len(keep), len(rgb_files), "colour images with no depth image of the same number")
+    return keep

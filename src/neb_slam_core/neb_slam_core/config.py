@@ -1,0 +1,145 @@
+"""Configuration: frozen dataclasses, one per subsystem, with the paper's defaults.
+
+Components take their own sub-config (never the whole tree). YAML files with ``inherit_from`` and the
+per-dataset presets build on these classes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class HashGridConfig:
+    """Multi-resolution hash encoding of one neural block (paper: L=16, F=2, R_min=16, T=2^15).
+
+    ``max_resolution`` is the finest grid resolution over the block's edge: edge / voxel size
+    (5 m / 2 cm = 250).
+    """
+
+    n_levels: int = 16
+    n_features_per_level: int = 2
+    log2_hashmap_size: int = 15
+    base_resolution: int = 16
+    max_resolution: int = 250
+    init_scale: float = 1e-4
+
+    @property
+    def table_size(self) -> int:
+        return 1 << self.log2_hashmap_size
+
+    @property
+    def n_output_dims(self) -> int:
+        return self.n_levels * self.n_features_per_level
+
+
+@dataclass(frozen=True)
+class OneBlobConfig:
+    """One-blob encoding of world coordinates (16 bins per axis).
+
+    An unknown scene has no bounds to normalise by, so each axis is encoded periodically with
+    ``period_m``: the code of x and of x + period_m is the same, and the block's hash features tell
+    them apart. The period must exceed a block's edge so that no block sees a repeated code.
+    """
+
+    n_bins: int = 16
+    period_m: float = 10.0
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    """The two shared MLPs of the paper: geometry (one-blob + hash -> sdf + feature) and colour."""
+
+    hidden_dim: int = 32
+    feature_dim: int = 15
+
+
+@dataclass(frozen=True)
+class BlockConfig:
+    """Neural blocks and their allocation (paper: 5 m cubes, tau threshold 0.2)."""
+
+    edge_m: float = 5.0
+    grid: HashGridConfig = HashGridConfig()
+    alloc_threshold: float = 0.2
+    alloc_n_points: int = 2000
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    """Samples per ray: ``n_uniform`` between near and far plus ``n_surface`` within +/- ``surface_range_m``
+    of the measured depth (paper: 32 + 11; ScanNet 96 + 21)."""
+
+    n_uniform: int = 32
+    n_surface: int = 11
+    near_m: float = 0.1
+    far_m: float = 6.0
+    surface_range_m: float = 0.05
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the five losses (paper: colour 5, depth 0.1, sdf 1000, free space 10, smoothness 1e-6)."""
+
+    colour: float = 5.0
+    depth: float = 0.1
+    sdf: float = 1000.0
+    free_space: float = 10.0
+    smoothness: float = 1e-6
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Volume rendering and its losses: truncation ``truncation_m`` (10 cm; TUM 5 cm)."""
+
+    truncation_m: float = 0.10
+    sampling: SamplingConfig = SamplingConfig()
+    weights: LossWeights = LossWeights()
+    smoothness_points: int = 512
+    smoothness_step_m: float = 0.02
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    """Mesh extraction: marching cubes at ``voxel_size_m``; surfaces farther than ``cull_distance_m`` from
+    every observed point are removed."""
+
+    voxel_size_m: float = 0.02
+    cull_distance_m: float = 0.10
+    batch_points: int = 65536
+
+
+def config_to_dict(cfg) -> dict:
+    """A config dataclass (nested) -> plain dict (YAML/JSON friendly)."""
+    from dataclasses import asdict
+
+    return asdict(cfg)
+
+
+def config_from_dict(cls, data: dict, where: str = ""):
+    """Build config dataclass ``cls`` from a (nested) dict; unknown keys raise :class:`ConfigError`
+    naming the key, nested dataclass fields are built recursively, missing keys take defaults."""
+    import dataclasses
+    import typing
+
+    from .errors import ConfigError
+
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where or cls.__name__}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in fields:
+            raise ConfigError(f"{where + '.' if where else ''}{key}: unknown parameter of {cls.__name__} "
+                              f"(known: {', '.join(fields)})")
+        hint = hints[key]
+        name = f"{where + '.' if where else ''}{key}"
+        if dataclasses.is_dataclass(hint):
+            kwargs[key] = config_from_dict(hint, value, name)
+        elif hint is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            kwargs[key] = float(value)
+        elif hint in (int, bool, str) and not isinstance(value, hint) or (hint is int and isinstance(value, bool)):
+            raise ConfigError(f"{name}: expected {hint.__name__}, got {value!r}")
+        else:
+            kwargs[key] = value
+    return cls(**kwargs)

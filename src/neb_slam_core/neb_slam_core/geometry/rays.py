@@ -1,0 +1,55 @@
+"""Camera rays and back-projection (torch, device-agnostic).
+
+Pixel convention used throughout the project: integer pixel coordinates (u, v) are pixel centres, and the
+ray of pixel (u, v) is ``K^-1 [u, v, 1]``; a pixel with depth d back-projects to ``d K^-1 [u, v, 1]`` in the
+camera frame. Ray directions keep z = 1 in the camera frame, so the ray parameter equals the z-depth.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..types import Intrinsics
+
+
+def pixel_directions(intrinsics: Intrinsics, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` pixel coordinates -> ``(N, 3)`` camera-frame directions with z = 1."""
+    k = intrinsics
+    x = (u.to(torch.float32) - k.cx) / k.fx
+    y = (v.to(torch.float32) - k.cy) / k.fy
+    return torch.stack([x, y, torch.ones_like(x)], dim=-1)
+
+
+def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Apply ``T`` (4, 4) or ``(N, 4, 4)`` to ``(N, 3)`` points."""
+    if T.dim() == 2:
+        return points @ T[:3, :3].T + T[:3, 3]
+    return (T[:, :3, :3] @ points[..., None])[..., 0] + T[:, :3, 3]
+
+
+def rays_world(T_world_cam: torch.Tensor, dirs_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """World-frame ray origins and directions ``(N, 3)`` each, for one pose (4, 4) or one per ray (N, 4, 4)."""
+    if T_world_cam.dim() == 2:
+        dirs = dirs_cam @ T_world_cam[:3, :3].T
+        origins = T_world_cam[:3, 3].expand_as(dirs)
+    else:
+        dirs = (T_world_cam[:, :3, :3] @ dirs_cam[..., None])[..., 0]
+        origins = T_world_cam[:, :3, 3]
+    return origins, dirs
+
+
+def backproject_depth(depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray | None = None,
+                      stride: int = 1) -> np.ndarray:
+    """All valid pixels of a depth image (every ``stride``-th row/column) -> ``(K, 3)`` points
+    (world frame when ``T_world_cam`` is given, camera frame otherwise), float64."""
+    d = depth_m[::stride, ::stride]
+    v, u = np.nonzero(d > 0)
+    z = d[v, u].astype(np.float64)
+    u = u * stride
+    v = v * stride
+    k = intrinsics
+    pts = np.stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z], axis=1)
+    if T_world_cam is not None:
+        pts = pts @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    return pts

@@ -1,0 +1,1 @@
+"""Mapping: optimisers over the growing block map, keyframes, joint optimisation."""

@@ -1,0 +1,1 @@
+"""Ray sampling, volume rendering and the losses of the paper (pure functions)."""

@@ -1,0 +1,63 @@
+"""Render ray batches through the block map and score them with the paper's objective."""
+
+from __future__ import annotations
+
+import torch
+
+from ..config import RenderConfig
+from ..scene.block_map import BlockMap
+from .losses import LossTerms, colour_loss, combine, depth_loss, sdf_losses, smoothness_loss
+from .rays import RayBatch
+from .sampling import sample_depths
+from .volume import RenderOutput, composite, sdf_weights
+
+
+def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
+                stratified: bool = True, generator: torch.Generator | None = None,
+                with_colour: bool = True) -> RenderOutput:
+    """Sample, query the blocks ``block_ids`` (all when None) and composite ``R`` rays.
+
+    Samples outside every consulted block are discarded (weight 0), as the paper prescribes.
+    """
+    z = sample_depths(rays.depth_m, cfg.sampling, stratified=stratified, generator=generator)  # (R, S)
+    r, s = z.shape
+    points = rays.origins[:, None, :] + z[..., None] * rays.dirs[:, None, :]  # (R, S, 3)
+    sample = block_map.query(points.reshape(-1, 3), block_ids, with_colour=with_colour)
+    sdf = sample.sdf.reshape(r, s)
+    valid = sample.valid.reshape(r, s)
+    w = sdf_weights(sdf, valid)
+    depth, rgb = composite(w, z, sample.rgb.reshape(r, s, 3))
+    return RenderOutput(depth, rgb, z, sdf, valid, valid.any(dim=-1))
+
+
+def smoothness_term(block_map: BlockMap, cfg: RenderConfig, block_ids: list[int] | None,
+                    generator: torch.Generator | None = None) -> torch.Tensor:
+    """Feature smoothness on ``cfg.smoothness_points`` random points of random consulted blocks."""
+    ids = list(range(len(block_map))) if block_ids is None else list(block_ids)
+    g = cfg.smoothness_points
+    if not ids or g == 0 or cfg.weights.smoothness == 0:
+        return block_map.centres().new_zeros(())
+    dev = block_map.device
+    which = torch.randint(len(ids), (g,), device=dev, generator=generator)
+    centres = block_map.centres()[torch.as_tensor(ids, device=dev)[which]]
+    edge = block_map.block_cfg.edge_m
+    step = cfg.smoothness_step_m
+    offsets = torch.rand(g, 3, device=dev, generator=generator) * (edge - step) - 0.5 * edge
+    p = centres + offsets
+    shifted = p[:, None, :] + step * torch.eye(3, device=dev)[None]  # (G, 3, 3)
+    pts = torch.cat([p, shifted.reshape(-1, 3)])
+    feats, valid = block_map.grid_features(pts, ids)
+    f0, f1 = feats[:g], feats[g:].reshape(g, 3, -1)
+    v = valid[:g] & valid[g:].reshape(g, 3).all(dim=1)
+    return smoothness_loss(f0, f1, v)
+
+
+def objective(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
+              generator: torch.Generator | None = None, with_smoothness: bool = True) -> tuple[LossTerms, RenderOutput]:
+    """Render ``rays`` and evaluate the paper's weighted objective on them."""
+    out = render_rays(block_map, rays, cfg, block_ids, stratified=True, generator=generator)
+    l_c = colour_loss(out.rgb, rays.rgb, out.ray_valid)
+    l_d = depth_loss(out.depth_m, rays.depth_m, out.ray_valid)
+    l_sdf, l_fs = sdf_losses(out.sdf, out.z, rays.depth_m, out.sample_valid, cfg.truncation_m)
+    l_s = smoothness_term(block_map, cfg, block_ids, generator) if with_smoothness else l_c.new_zeros(())
+    return combine(cfg.weights, l_c, l_d, l_sdf, l_fs, l_s), out

@@ -1,0 +1,47 @@
+"""A neural block (NeB): an axis-aligned cube with its own hash grid, anchored in the world frame."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..config import HashGridConfig
+from .hash_grid import HashGrid
+
+
+class NeuralBlock(nn.Module):
+    """Block ``block_id`` of edge ``edge_m`` centred at ``centre_world`` (metres, world frame).
+
+    Its local coordinate maps the cube onto [0, 1]^3: ``(x - C) / edge + 1/2``. ``keyframe_ids`` lists the
+    keyframes that belong to it (the frame that allocated it and later keyframes that observe it).
+    """
+
+    def __init__(self, block_id: int, centre_world, edge_m: float, grid_cfg: HashGridConfig,
+                 backend: str = "auto", seed: int | None = None):
+        super().__init__()
+        self.block_id = int(block_id)
+        self.edge_m = float(edge_m)
+        self.register_buffer("centre", torch.as_tensor(centre_world, dtype=torch.float32).reshape(3).clone())
+        self.grid = HashGrid(grid_cfg, backend=backend, seed=seed)
+        self.keyframe_ids: list[int] = []
+
+    @property
+    def min_corner(self) -> torch.Tensor:
+        return self.centre - 0.5 * self.edge_m
+
+    @property
+    def max_corner(self) -> torch.Tensor:
+        return self.centre + 0.5 * self.edge_m
+
+    def to_local(self, points_world: torch.Tensor) -> torch.Tensor:
+        """``(N, 3)`` world points -> ``(N, 3)`` local coordinates, inside the block when in [0, 1]^3."""
+        return (points_world - self.centre.to(points_world.dtype)) / self.edge_m + 0.5
+
+    def contains(self, points_world: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` bool: the point lies in the closed cube."""
+        half = 0.5 * self.edge_m
+        return ((points_world - self.centre.to(points_world.dtype)).abs() <= half).all(dim=-1)
+
+    def extra_repr(self) -> str:
+        c = ", ".join(f"{v:.2f}" for v in self.centre.tolist())
+        return f"id={self.block_id}, centre=({c}), edge={self.edge_m} m, keyframes={len(self.keyframe_ids)}"

@@ -1,0 +1,204 @@
+"""The block map: all neural blocks, the shared decoders, and the geometry that ties them together.
+
+Points are answered by the blocks that contain them (the mean of their hash features where several
+overlap; points in none are invalid and get discarded by the caller). Work is restricted to the blocks
+that intersect the current camera frustum. New blocks are allocated by the paper's tau rule and can be
+added at any time without touching the others.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..config import BlockConfig, DecoderConfig, OneBlobConfig
+from ..types import Intrinsics
+from .block import NeuralBlock
+from .decoders import Decoders
+from .one_blob import OneBlob
+
+
+@dataclass
+class MapSample:
+    """The map evaluated at ``N`` points.
+
+    Attributes:
+        sdf: ``(N,)`` signed distance in truncation units (0 where invalid).
+        rgb: ``(N, 3)`` colour in [0, 1] (0 where invalid).
+        valid: ``(N,)`` bool, the point lies in at least one of the queried blocks.
+    """
+
+    sdf: torch.Tensor
+    rgb: torch.Tensor
+    valid: torch.Tensor
+
+
+@dataclass
+class Allocation:
+    """Outcome of the allocation test for one frame: ``tau`` and, when it allocated, the new block."""
+
+    tau: float
+    block: NeuralBlock | None
+
+
+class BlockMap(nn.Module):
+    """All neural blocks of a scene plus the shared one-blob encoding and decoders."""
+
+    def __init__(self, block_cfg: BlockConfig = BlockConfig(), blob_cfg: OneBlobConfig = OneBlobConfig(),
+                 decoder_cfg: DecoderConfig = DecoderConfig(), grid_backend: str = "auto", seed: int = 0):
+        super().__init__()
+        self.block_cfg = block_cfg
+        self.blob_cfg = blob_cfg
+        self.decoder_cfg = decoder_cfg
+        self.grid_backend = grid_backend
+        self.seed = int(seed)
+        self.blocks = nn.ModuleList()
+        self.one_blob = OneBlob(blob_cfg)
+        with torch.random.fork_rng(devices=[]):  # decoder initialisation is part of the map's seed
+            torch.manual_seed(self.seed)
+            self.decoders = Decoders(self.one_blob.n_output_dims, block_cfg.grid.n_output_dims, decoder_cfg)
+
+    # ------------------------------------------------------------------ blocks
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.decoders.parameters()).device
+
+    def add_block(self, centre_world) -> NeuralBlock:
+        """Allocate a new block centred at ``centre_world`` (3,); existing blocks are untouched."""
+        block_id = len(self.blocks)
+        block = NeuralBlock(block_id, centre_world, self.block_cfg.edge_m, self.block_cfg.grid,
+                            backend=self.grid_backend, seed=self.seed * 100_003 + block_id)
+        self.blocks.append(block.to(self.device))
+        return block
+
+    def centres(self) -> torch.Tensor:
+        """``(M, 3)`` block centres."""
+        if not len(self.blocks):
+            return torch.zeros(0, 3, device=self.device)
+        return torch.stack([b.centre for b in self.blocks])
+
+    def contains(self, points_world: torch.Tensor, block_ids: list[int] | None = None) -> torch.Tensor:
+        """``(N, M)`` bool: point n lies in block ``block_ids[m]`` (all blocks when None)."""
+        ids = range(len(self.blocks)) if block_ids is None else block_ids
+        if not len(ids):
+            return torch.zeros(points_world.shape[0], 0, dtype=torch.bool, device=points_world.device)
+        centres = self.centres()[list(ids)].to(points_world.dtype)
+        half = 0.5 * self.block_cfg.edge_m
+        return ((points_world[:, None, :] - centres[None]).abs() <= half).all(dim=-1)
+
+    def blocks_in_frustum(self, T_world_cam: np.ndarray, intrinsics: Intrinsics, near_m: float,
+                          far_m: float) -> list[int]:
+        """Ids of the blocks that may intersect the camera frustum between ``near_m`` and ``far_m``.
+
+        Conservative: a block is dropped only when all its corners lie outside one frustum plane, or all
+        frustum corners lie outside one face of the block; it never drops a block that intersects.
+        """
+        if not len(self.blocks):
+            return []
+        T_cam_world = np.linalg.inv(np.asarray(T_world_cam, dtype=np.float64))
+        centres = self.centres().detach().cpu().double().numpy()
+        half = 0.5 * self.block_cfg.edge_m
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+        corners_w = centres[:, None, :] + half * signs[None]  # (M, 8, 3)
+        corners_c = corners_w @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        x, y, z = corners_c[..., 0], corners_c[..., 1], corners_c[..., 2]
+        k = intrinsics
+        outside = (
+            (z < near_m).all(-1) | (z > far_m).all(-1)
+            | (k.fx * x + k.cx * z < 0).all(-1)  # u < 0
+            | (k.fx * x + (k.cx - k.width) * z > 0).all(-1)  # u > W
+            | (k.fy * y + k.cy * z < 0).all(-1)  # v < 0
+            | (k.fy * y + (k.cy - k.height) * z > 0).all(-1)  # v > H
+        )
+        # frustum corners (pixel-grid corners at near and far) against the block's faces
+        uv = np.array([[0, 0], [k.width, 0], [0, k.height], [k.width, k.height]], dtype=np.float64)
+        rays = np.stack([(uv[:, 0] - k.cx) / k.fx, (uv[:, 1] - k.cy) / k.fy, np.ones(4)], axis=1)
+        fr_c = np.concatenate([rays * near_m, rays * far_m])  # (8, 3)
+        fr_w = fr_c @ np.asarray(T_world_cam)[:3, :3].T + np.asarray(T_world_cam)[:3, 3]
+        lo, hi = centres - half, centres + half  # (M, 3)
+        outside |= ((fr_w[None] < lo[:, None]).all(1) | (fr_w[None] > hi[:, None]).all(1)).any(-1)
+        return [i for i in range(len(self.blocks)) if not outside[i]]
+
+    # ------------------------------------------------------------------ queries
+
+    def grid_features(self, points_world: torch.Tensor,
+                      block_ids: list[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean hash features over the containing blocks.
+
+        Args:
+            points_world: ``(N, 3)`` world points.
+            block_ids: blocks to consult (e.g. the frustum's); all when None.
+        Returns:
+            ``(N, L*F)`` features (0 for points in no block) and ``(N,)`` bool validity.
+        """
+        ids = list(range(len(self.blocks))) if block_ids is None else list(block_ids)
+        n = points_world.shape[0]
+        dim = self.block_cfg.grid.n_output_dims
+        inside = self.contains(points_world, ids)  # (N, M)
+        count = inside.sum(dim=1)
+        feats = points_world.new_zeros(n, dim)
+        for m, block_id in enumerate(ids):
+            idx = inside[:, m].nonzero(as_tuple=True)[0]
+            if idx.numel() == 0:
+                continue
+            block = self.blocks[block_id]
+            local = block.to_local(points_world[idx])
+            feats = feats.index_add(0, idx, block.grid(local).to(feats.dtype))
+        valid = count > 0
+        feats = feats / count.clamp(min=1).to(feats.dtype)[:, None]
+        return feats, valid
+
+    def query(self, points_world: torch.Tensor, block_ids: list[int] | None = None,
+              with_colour: bool = True) -> MapSample:
+        """Evaluate SDF and colour at ``(N, 3)`` world points; decoders run on valid points only."""
+        feats, valid = self.grid_features(points_world, block_ids)
+        n = points_world.shape[0]
+        sdf = points_world.new_zeros(n)
+        rgb = points_world.new_zeros(n, 3)
+        idx = valid.nonzero(as_tuple=True)[0]
+        if idx.numel():
+            blob = self.one_blob(points_world[idx])
+            if with_colour:
+                s, c = self.decoders(blob, feats[idx])
+                rgb = rgb.index_put((idx,), c.to(rgb.dtype))
+            else:
+                s = self.decoders.sdf_only(blob, feats[idx])
+            sdf = sdf.index_put((idx,), s.to(sdf.dtype))
+        return MapSample(sdf, rgb, valid)
+
+    # ------------------------------------------------------------------ allocation
+
+    def allocation_tau(self, points_world: torch.Tensor, block_ids: list[int]) -> tuple[float, torch.Tensor]:
+        """tau = fraction of ``(N, 3)`` back-projected points outside every block in ``block_ids``;
+        also returns the outside points ``(K, 3)``."""
+        if points_world.shape[0] == 0:
+            return 0.0, points_world
+        inside = self.contains(points_world, block_ids).any(dim=1)
+        outside = points_world[~inside]
+        return float(outside.shape[0]) / points_world.shape[0], outside
+
+    def allocate_if_needed(self, points_world: torch.Tensor, block_ids: list[int]) -> Allocation:
+        """The paper's rule: when tau > threshold, add a block centred at the mean of the outside points."""
+        tau, outside = self.allocation_tau(points_world, block_ids)
+        if tau > self.block_cfg.alloc_threshold and outside.shape[0] > 0:
+            return Allocation(tau, self.add_block(outside.mean(dim=0).detach()))
+        return Allocation(tau, None)
+
+    # ------------------------------------------------------------------ sizes
+
+    def grid_param_bytes(self) -> int:
+        return sum(b.grid.param_bytes for b in self.blocks)
+
+    def decoder_param_bytes(self) -> int:
+        return sum(p.numel() * p.element_size() for p in self.decoders.parameters())
+
+    def param_mb(self) -> float:
+        """Parameter size in MB (10^6 bytes): blocks x per-block grid + decoders."""
+        return (self.grid_param_bytes() + self.decoder_param_bytes()) / 1e6

@@ -1,0 +1,78 @@
+"""Save and load a whole block map (blocks, decoders, configs, format version) to one file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from .. import __version__
+from ..config import BlockConfig, DecoderConfig, OneBlobConfig, config_from_dict, config_to_dict
+from ..errors import DatasetError
+from .block_map import BlockMap
+
+MAP_FORMAT = "neb_slam_map"
+MAP_FORMAT_VERSION = 1
+
+
+def save_map(block_map: BlockMap, path: str | Path, extra: dict | None = None) -> Path:
+    """Write the map to ``path`` (a torch file). ``extra`` is stored alongside (e.g. keyframe poses).
+
+    Written to a temporary file first and renamed, so an interrupted save never leaves a broken file.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": MAP_FORMAT,
+        "version": MAP_FORMAT_VERSION,
+        "software": __version__,
+        "config": {
+            "block": config_to_dict(block_map.block_cfg),
+            "one_blob": config_to_dict(block_map.blob_cfg),
+            "decoder": config_to_dict(block_map.decoder_cfg),
+        },
+        "seed": block_map.seed,
+        "blocks": [
+            {"id": b.block_id, "centre": b.centre.detach().cpu(), "table": b.grid.table.detach().cpu(),
+             "keyframe_ids": list(b.keyframe_ids)}
+            for b in block_map.blocks
+        ],
+        "decoders": {k: v.detach().cpu() for k, v in block_map.decoders.state_dict().items()},
+        "extra": extra or {},
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_map(path: str | Path, device: str | torch.device = "cpu",
+             grid_backend: str = "auto") -> tuple[BlockMap, dict]:
+    """Read a map written by :func:`save_map`; returns the map and the stored ``extra``."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "map file not found")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt files
+        raise DatasetError(path, f"not a readable map file ({type(exc).__name__}: {exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != MAP_FORMAT:
+        raise DatasetError(path, f"not a NeB-SLAM map (expected format {MAP_FORMAT!r})")
+    if payload.get("version") != MAP_FORMAT_VERSION:
+        raise DatasetError(path, f"map format version {payload.get('version')} is not supported "
+                                 f"(this software reads version {MAP_FORMAT_VERSION})")
+    cfg = payload["config"]
+    block_map = BlockMap(config_from_dict(BlockConfig, cfg["block"], "block"),
+                         config_from_dict(OneBlobConfig, cfg["one_blob"], "one_blob"),
+                         config_from_dict(DecoderConfig, cfg["decoder"], "decoder"),
+                         grid_backend=grid_backend, seed=payload["seed"]).to(device)
+    for entry in payload["blocks"]:
+        block = block_map.add_block(entry["centre"])
+        if block.grid.table.shape != entry["table"].shape:
+            raise DatasetError(path, f"block {entry['id']}: table shape {tuple(entry['table'].shape)} does not match "
+                                     f"the stored config ({tuple(block.grid.table.shape)})")
+        with torch.no_grad():
+            block.grid.table.copy_(entry["table"])
+        block.keyframe_ids = list(entry["keyframe_ids"])
+    block_map.decoders.load_state_dict(payload["decoders"])
+    return block_map, payload.get("extra", {})

@@ -1,0 +1,118 @@
+import numpy as np
+import torch
+
+from neb_slam_core.config import BlockConfig, HashGridConfig
+from neb_slam_core.mapping.optimizer import MapOptimizer
+from neb_slam_core.scene.block_map import BlockMap
+from neb_slam_core.types import Intrinsics
+
+SMALL_GRID = HashGridConfig(n_levels=4, n_features_per_level=2, log2_hashmap_size=12, base_resolution=4,
+                            max_resolution=32, init_scale=0.1)
+
+
+def make_map(**kw) -> BlockMap:
+    return BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID, **kw), grid_backend="reference", seed=3)
+
+
+def test_contains_and_local_coordinates():
+    m = make_map()
+    b = m.add_block([1.0, 2.0, 3.0])
+    pts = torch.tensor([[1.0, 2.0, 3.0], [3.5, 4.5, 5.5], [3.51, 2.0, 3.0], [-1.5, -0.5, 0.5]])
+    assert m.contains(pts).squeeze(1).tolist() == [True, True, False, True]
+    assert torch.allclose(b.to_local(pts[:2]), torch.tensor([[0.5, 0.5, 0.5], [1.0, 1.0, 1.0]]))
+
+
+def test_features_are_the_mean_over_overlapping_blocks_and_points_in_none_are_invalid():
+    m = make_map()
+    a = m.add_block([0.0, 0.0, 0.0])
+    b = m.add_block([3.0, 0.0, 0.0])  # overlap for x in [0.5, 2.5]
+    pts = torch.tensor([[-2.0, 0.0, 0.0], [1.5, 0.3, -0.2], [5.0, 1.0, 1.0], [9.0, 0.0, 0.0]])
+    feats, valid = m.grid_features(pts)
+    assert valid.tolist() == [True, True, True, False]
+    fa = a.grid(a.to_local(pts))
+    fb = b.grid(b.to_local(pts))
+    assert torch.allclose(feats[0], fa[0])
+    assert torch.allclose(feats[1], 0.5 * (fa[1] + fb[1]))
+    assert torch.allclose(feats[2], fb[2])
+    assert torch.equal(feats[3], torch.zeros_like(feats[3]))
+    # restricting to block a only
+    feats_a, valid_a = m.grid_features(pts, [a.block_id])
+    assert valid_a.tolist() == [True, True, False, False]
+    assert torch.allclose(feats_a[1], fa[1])
+    q = m.query(pts)
+    assert q.sdf.shape == (4,) and q.rgb.shape == (4, 3)
+    assert q.sdf[3] == 0 and (q.rgb[3] == 0).all()
+
+
+def test_frustum_selection():
+    m = make_map()
+    k = Intrinsics(100.0, 100.0, 50.0, 50.0, 100, 100)  # 53 degree field of view
+    ahead = m.add_block([0.0, 0.0, 4.0]).block_id
+    far_ahead = m.add_block([0.0, 0.0, 12.0]).block_id  # spans z 9.5..14.5
+    behind = m.add_block([0.0, 0.0, -6.0]).block_id
+    aside = m.add_block([20.0, 0.0, 4.0]).block_id
+    grazing = m.add_block([4.4, 0.0, 6.0]).block_id  # x from 1.9: the frustum reaches x = 3 at z = 6
+    T = np.eye(4)
+    ids = m.blocks_in_frustum(T, k, near_m=0.1, far_m=6.0)
+    assert ahead in ids and grazing in ids
+    assert far_ahead not in ids and behind not in ids and aside not in ids
+    assert far_ahead in m.blocks_in_frustum(T, k, near_m=0.1, far_m=10.0)
+    # turn the camera around (180 degrees about y): now the block behind is in view
+    T_back = np.diag([-1.0, 1.0, -1.0, 1.0])
+    ids_back = m.blocks_in_frustum(T_back, k, 0.1, 8.0)
+    assert behind in ids_back and ahead not in ids_back
+
+
+def test_allocation_rule():
+    m = make_map(alloc_threshold=0.2)
+    pts = torch.tensor([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0], [2.0, 3.0, 2.0]])
+    first = m.allocate_if_needed(pts, [])
+    assert first.tau == 1.0 and first.block is not None
+    assert torch.allclose(first.block.centre, torch.tensor([1.0, 1.0, 2.0]))
+    # all inside: no new block
+    again = m.allocate_if_needed(pts, [0])
+    assert again.tau == 0.0 and again.block is None and len(m) == 1
+    # 1 of 5 outside: tau = 0.2 is not above the threshold
+    pts5 = torch.cat([pts, torch.tensor([[1.0, 1.0, 1.0], [10.0, 0.0, 2.0]])])
+    assert m.allocate_if_needed(pts5, [0]).block is None
+    # 2 of 5 outside: tau = 0.4 > 0.2, centred at the mean of the two outside points
+    pts5[3] = torch.tensor([10.0, 2.0, 4.0])
+    alloc = m.allocate_if_needed(pts5, [0])
+    assert abs(alloc.tau - 0.4) < 1e-9 and alloc.block is not None
+    assert torch.allclose(alloc.block.centre, torch.tensor([10.0, 1.0, 3.0]))
+
+
+def test_adding_a_block_keeps_optimizer_state_of_existing_blocks():
+    m = make_map()
+    m.add_block([0.0, 0.0, 0.0])
+    opt = MapOptimizer(m, grid_lr=1e-2, decoder_lr=1e-2)
+    pts = torch.rand(256, 3) * 4 - 2
+    for _ in range(3):
+        opt.zero_grad()
+        m.query(pts).sdf.square().mean().backward()
+        opt.step()
+    table0 = m.blocks[0].grid.table
+    state_before = {k: v.clone() for k, v in opt.optimizer.state[table0].items()}
+    values_before = table0.detach().clone()
+    m.add_block([4.0, 0.0, 0.0])
+    assert opt.sync() == 1
+    assert len(opt.optimizer.param_groups) == 3  # decoders + two blocks
+    for k, v in opt.optimizer.state[table0].items():
+        assert torch.equal(v, state_before[k])
+    assert torch.equal(table0.detach(), values_before)
+    opt.zero_grad()
+    m.query(torch.rand(256, 3) * 8 - 2).sdf.square().mean().backward()
+    opt.step()
+    assert opt.optimizer.state[m.blocks[1].grid.table]["step"] == 1
+    assert opt.optimizer.state[table0]["step"] == 4
+
+
+def test_param_mb_is_blocks_times_grid_plus_decoders():
+    m = make_map()
+    m.add_block([0.0, 0.0, 0.0])
+    m.add_block([4.0, 0.0, 0.0])
+    per_block = m.blocks[0].grid.param_bytes
+    decoders = sum(p.numel() * 4 for p in m.decoders.parameters())
+    # geometry (48+8)->32->16 and colour (48+15)->32->3 for this small grid (L*F = 8)
+    assert decoders == 4 * ((56 * 32 + 32) + (32 * 16 + 16) + (63 * 32 + 32) + (32 * 3 + 3))
+    assert abs(m.param_mb() - (2 * per_block + decoders) / 1e6) < 1e-12

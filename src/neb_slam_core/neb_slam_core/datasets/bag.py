@@ -9,7 +9,8 @@ one (``/tf`` is not read).
 
 Colour (rgb8, bgr8, rgba8, bgra8, mono8) and depth (16UC1 / mono16 in units of ``depth_scale`` metres,
 or 32FC1 metres) are paired by ``header.stamp``: nearest within ``sync_slop_s``, each image used once.
-Intrinsics come from the first camera_info message; every image must have its size.
+Intrinsics come from the first camera_info message (or an explicit ``intrinsics``, e.g. a calibration
+better than the driver's); every image must have their size.
 
 Reading is lazy: the constructor reads the bag once to index it (per image: connection, log time and
 header stamp); ``dataset[i]`` then fetches just that frame's two messages by log time from a reader
@@ -39,8 +40,8 @@ from ..io.bag import (
     pose_from_msg,
     stamp_ns_of,
 )
-from ..types import RgbdFrame
-from .base import Dataset, associate_unique, register, warn_skipped
+from ..types import Intrinsics, RgbdFrame
+from .base import Dataset, associate_unique, check_intrinsics, register, warn_skipped
 
 log = logging.getLogger(__name__)
 
@@ -86,11 +87,15 @@ class BagDataset(Dataset):
             only PoseStamped topic; ``""`` to ignore ground truth.
         depth_scale: metres per unit of 16UC1 depth (0.001: millimetres).
         sync_slop_s: largest colour-depth stamp difference for a pair.
+        intrinsics: use these instead of the camera_info topic (which then need not exist); the
+            distortion still comes from camera_info when there is one.
     """
 
     def __init__(self, root: str | Path, rgb_topic: str | None = None, depth_topic: str | None = None,
                  camera_info_topic: str | None = None, ground_truth_topic: str | None = None,
-                 depth_scale: float = 0.001, sync_slop_s: float = 0.02):
+                 depth_scale: float = 0.001, sync_slop_s: float = 0.02, intrinsics: Intrinsics | None = None):
+        self._reader = None
+        self._reader_pid = -1
         self.root = Path(root)
         if not is_bag_path(self.root):
             raise DatasetError(self.root, "not a bag: expected a ROS 2 bag directory with metadata.yaml, "
@@ -101,16 +106,18 @@ class BagDataset(Dataset):
             raise DatasetError(self.root, f"sync_slop_s must be >= 0, got {sync_slop_s}")
         self.depth_scale = float(depth_scale)
         self.sync_slop_s = float(sync_slop_s)
-        self._reader = None
-        self._reader_pid = -1
+        self._intrinsics_override = intrinsics
         reader = self._open()
-        topics = reader.topics
-        self.topics = self._resolve_topics(reader, topics, rgb_topic, depth_topic, camera_info_topic,
-                                           ground_truth_topic)
-        # connection table: the connections of the chosen topics, in a fixed order (rebuilt on reopen)
-        self._conn_topics = [t for t in (self.topics.rgb, self.topics.depth) if t]
-        self._conns = self._connection_table(reader)
-        self._index(reader)
+        try:
+            self.topics = self._resolve_topics(reader, reader.topics, rgb_topic, depth_topic, camera_info_topic,
+                                               ground_truth_topic)
+            # connection table: the connections of the image topics, in a fixed order (rebuilt on reopen)
+            self._conn_topics = [self.topics.rgb, self.topics.depth]
+            self._conns = self._connection_table(reader)
+            self._index(reader)
+        except BaseException:
+            self.close()
+            raise
 
     # ------------------------------------------------------------------------------------------
     # reader lifetime
@@ -119,9 +126,7 @@ class BagDataset(Dataset):
         """The open AnyReader of this bag (opened on first use and again in a forked process)."""
         if self._reader is not None and self._reader_pid == os.getpid():
             return self._reader
-        from rosbags.highlevel import AnyReader, AnyReaderError
-        from rosbags.rosbag1 import ReaderError as Reader1Error
-        from rosbags.rosbag2 import ReaderError as Reader2Error
+        from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
         is_ros1 = self.root.suffix == ".bag"
@@ -129,8 +134,8 @@ class BagDataset(Dataset):
         try:
             reader = AnyReader([self.root], default_typestore=store)
             reader.open()
-        except (AnyReaderError, Reader1Error, Reader2Error, OSError, KeyError, ValueError) as exc:
-            raise DatasetError(self.root, f"cannot open bag: {exc}") from None
+        except Exception as exc:  # rosbags raises reader-, storage- and format-specific errors
+            raise DatasetError(self.root, f"cannot open bag: {type(exc).__name__}: {exc}") from None
         self._reader, self._reader_pid = reader, os.getpid()
         if getattr(self, "_conn_topics", None):
             self._conns = self._connection_table(reader)
@@ -138,7 +143,7 @@ class BagDataset(Dataset):
 
     def close(self) -> None:
         """Close the bag reader (reading a frame afterwards reopens it)."""
-        if self._reader is not None and self._reader_pid == os.getpid():
+        if getattr(self, "_reader", None) is not None and self._reader_pid == os.getpid():
             try:
                 self._reader.close()
             except Exception:  # closing is best effort
@@ -207,6 +212,8 @@ class BagDataset(Dataset):
                 depth = depthish[0]
         require(rgb, IMAGE_TYPE, "colour")
         require(depth, IMAGE_TYPE, "depth")
+        if rgb == depth:
+            raise DatasetError(self.root, f"colour and depth cannot both be topic {rgb}")
 
         if info is None:
             infos = sorted(t for t, i in topics.items() if i.msgtype == CAMERA_INFO_TYPE)
@@ -214,10 +221,13 @@ class BagDataset(Dataset):
             info = next((t for t in (default.camera_info, sibling) if t in infos), None)
             if info is None and len(infos) == 1:
                 info = infos[0]
+            if info is None and self._intrinsics_override is not None:
+                info = ""  # not needed
             if info is None:
                 raise DatasetError(self.root, f"camera info topic {default.camera_info} not found (nor {sibling}); "
                                               f"CameraInfo topics: {', '.join(infos) or 'none'}; pass camera_info_topic")
-        require(info, CAMERA_INFO_TYPE, "camera info")
+        if info:
+            require(info, CAMERA_INFO_TYPE, "camera info")
 
         if gt is None:
             poses = sorted(t for t, i in topics.items() if i.msgtype == POSE_TYPE)
@@ -239,7 +249,7 @@ class BagDataset(Dataset):
         t = self.topics
         topics = reader.topics
         slot = {c.id: k for k, c in enumerate(self._conns)}
-        wanted = list(self._conns) + list(topics[t.camera_info].connections)
+        wanted = list(self._conns) + (list(topics[t.camera_info].connections) if t.camera_info else [])
         if t.ground_truth:
             wanted += list(topics[t.ground_truth].connections)
         streams = {t.rgb: ([], [], [], []), t.depth: ([], [], [], [])}  # conn, log, ordinal, stamp
@@ -272,12 +282,17 @@ class BagDataset(Dataset):
         except Exception as exc:  # corrupt storage surfaces as reader-specific errors
             raise DatasetError(self.root, f"cannot read bag messages: {exc}") from None
 
-        if info_msg is None:
+        self.distortion: tuple[float, ...] = ()
+        if info_msg is None and self._intrinsics_override is None:
             raise DatasetError(self.root, f"camera info topic {t.camera_info} has no messages; intrinsics are needed")
-        try:
-            self.intrinsics, self.distortion = intrinsics_from_camera_info(info_msg)
-        except ValueError as exc:
-            raise DatasetError(self.root, f"topic {t.camera_info}: {exc}") from None
+        if info_msg is not None:
+            try:
+                self.intrinsics, self.distortion = intrinsics_from_camera_info(info_msg)
+            except ValueError as exc:
+                raise DatasetError(self.root, f"topic {t.camera_info}: {exc}") from None
+        if self._intrinsics_override is not None:
+            self.intrinsics = check_intrinsics(self._intrinsics_override, self.root)
+        info_source = f"camera info on {t.camera_info}" if self._intrinsics_override is None else "the given intrinsics"
         size = (self.intrinsics.width, self.intrinsics.height)
         for topic, allowed in ((t.rgb, COLOUR_ENCODINGS), (t.depth, DEPTH_DTYPES)):
             if not shapes[topic]:
@@ -287,8 +302,8 @@ class BagDataset(Dataset):
                     raise DatasetError(self.root, f"topic {topic}: message {j} has encoding {enc!r}, "
                                                   f"expected one of {', '.join(allowed)}")
                 if (w, h) != size:
-                    raise DatasetError(self.root, f"topic {topic}: message {j} is {w}x{h} but camera info on "
-                                                  f"{t.camera_info} says {size[0]}x{size[1]}")
+                    raise DatasetError(self.root, f"topic {topic}: message {j} is {w}x{h} but {info_source} "
+                                                  f"says {size[0]}x{size[1]}")
 
         def as_index(cols) -> _ImageIndex:
             c, lg, o, s = cols

@@ -4,8 +4,6 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-BAG ?=
-CONFIG ?=
 DEMO_SCENE := bags/demo_scene
 DEMO_BAG := bags/demo_scene_bag
 
@@ -31,7 +29,7 @@ clean-build:
 	rm -rf build install log
 
 demo: venv
-	@$(PY) tools/demo.py --scene $(DEMO_SCENE) --bag $(DEMO_BAG) $(if $(BAG),--replay $(BAG)) $(if $(CONFIG),--config $(CONFIG))
+	@$(PY) tools/demo.py --scene $(DEMO_SCENE) --bag $(DEMO_BAG)
 
 bench: venv
 	$(PY) benchmarks/encoding.py

@@ -143,3 +143,62 @@ def config_from_dict(cls, data: dict, where: str = ""):
         else:
             kwargs[key] = value
     return cls(**kwargs)
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Pose optimisation by rendering (paper: N_t = 1024 rays, 10 iterations, lr 1e-3; TUM 1e-2).
+
+    ``failure_ratio``: a frame whose final depth residual exceeds this multiple of the running median,
+    or that has fewer than ``min_valid_rays`` rays inside blocks, is reported as a tracking failure and
+    keeps the constant-velocity prediction.
+    """
+
+    n_rays: int = 1024
+    iterations: int = 10
+    lr: float = 1e-3
+    border_px: int = 0
+    failure_ratio: float = 8.0
+    min_valid_rays: int = 64
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    """Keyframes: every ``every``-th frame plus allocating frames; each keeps ``pixel_fraction`` of its pixels."""
+
+    every: int = 5
+    pixel_fraction: float = 0.05
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    """Joint optimisation of blocks, decoders and keyframe poses (paper: first frame 200 iterations;
+    every 5 frames 10 iterations (TUM 20) of N_m = 2048 rays plus N_a = 512 from the newest block's
+    keyframes; learning rates 1e-2 grids and decoders, 1e-3 keyframe poses, the first keyframe fixed)."""
+
+    every: int = 5
+    iterations: int = 10
+    first_iterations: int = 200
+    n_rays: int = 2048
+    n_rays_newest_block: int = 512
+    grid_lr: float = 1e-2
+    decoder_lr: float = 1e-2
+    pose_lr: float = 1e-3
+    optimise_poses: bool = True
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """The whole engine's configuration; each component receives only its own part."""
+
+    block: BlockConfig = BlockConfig()
+    one_blob: OneBlobConfig = OneBlobConfig()
+    decoder: DecoderConfig = DecoderConfig()
+    render: RenderConfig = RenderConfig()
+    tracking: TrackingConfig = TrackingConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    mapping: MappingConfig = MappingConfig()
+    mesh: MeshConfig = MeshConfig()
+    grid_backend: str = "auto"
+    device: str = "cpu"
+    seed: int = 0

@@ -25,7 +25,7 @@ def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_id
     sample = block_map.query(points.reshape(-1, 3), block_ids, with_colour=with_colour)
     sdf = sample.sdf.reshape(r, s)
     valid = sample.valid.reshape(r, s)
-    w = sdf_weights(sdf, valid)
+    w = sdf_weights(sdf, z, valid, cfg.truncation_m)
     depth, rgb = composite(w, z, sample.rgb.reshape(r, s, 3))
     return RenderOutput(depth, rgb, z, sdf, valid, valid.any(dim=-1))
 

@@ -28,16 +28,34 @@ class RenderOutput:
     ray_valid: torch.Tensor
 
 
-def sdf_weights(sdf: torch.Tensor, sample_valid: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
-    """Normalised weights ``w_i = sigmoid(s_i/tr) sigmoid(-s_i/tr) / sum_j w_j`` over the valid samples.
+def sdf_weights(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, truncation_m: float,
+                eps: float = 1e-8) -> torch.Tensor:
+    """Normalised weights ``w_i = sigmoid(s_i/tr) sigmoid(-s_i/tr) / sum_j w_j`` (paper, after Azinovic et al.).
+
+    The decoder predicts the SDF in truncation units (``sdf`` = s / tr, 1 in free space at the band's
+    edge); as in Co-SLAM's implementation, whose loss weights the paper adopts, that normalised value is
+    divided by ``tr`` once more in the sigmoids. The bell is then about ``tr^2`` wide in metres (1 cm at
+    tr = 10 cm), so free-space samples (``sdf`` = 1) get a negligible weight instead of 0.197 / 0.25 of
+    a surface sample's. Samples more than ``tr`` behind the first zero crossing are dropped, so a
+    second surface further along the ray cannot pull the rendered depth.
 
     Args:
-        sdf: ``(R, S)`` SDF already divided by the truncation (s / tr).
+        sdf: ``(R, S)`` normalised SDF.
+        z: ``(R, S)`` increasing sample depths.
         sample_valid: ``(R, S)`` bool; invalid samples get weight 0.
     Returns:
         ``(R, S)`` weights summing to 1 on rays with a valid sample (0 elsewhere).
     """
-    w = torch.sigmoid(sdf) * torch.sigmoid(-sdf) * sample_valid.to(sdf.dtype)
+    x = sdf / truncation_m
+    w = torch.sigmoid(x) * torch.sigmoid(-x) * sample_valid.to(sdf.dtype)
+    with torch.no_grad():
+        s = torch.where(sample_valid, sdf, torch.ones_like(sdf))
+        crossing = (s[:, :-1] > 0) & (s[:, 1:] <= 0)
+        has = crossing.any(dim=1)
+        first = torch.argmax(crossing.to(torch.int8), dim=1) + 1  # first sample at or behind the surface
+        z_surface = torch.gather(z, 1, first[:, None])[:, 0]
+        keep = ~has[:, None] | (z <= (z_surface + truncation_m)[:, None])
+    w = w * keep.to(w.dtype)
     return w / (w.sum(dim=-1, keepdim=True) + eps)
 
 

@@ -142,6 +142,13 @@ class BlockMap(nn.Module):
         n = points_world.shape[0]
         dim = self.block_cfg.grid.n_output_dims
         inside = self.contains(points_world, ids)  # (N, M)
+        valid = inside.any(dim=1)
+        if len(ids) == 1:
+            # the common case (one block in view): no gather/scatter; points outside are clamped by
+            # the grid and masked here
+            block = self.blocks[ids[0]]
+            feats = block.grid(block.to_local(points_world).clamp(0.0, 1.0))
+            return feats * valid[:, None].to(feats.dtype), valid
         count = inside.sum(dim=1)
         feats = points_world.new_zeros(n, dim)
         for m, block_id in enumerate(ids):
@@ -151,27 +158,24 @@ class BlockMap(nn.Module):
             block = self.blocks[block_id]
             local = block.to_local(points_world[idx])
             feats = feats.index_add(0, idx, block.grid(local).to(feats.dtype))
-        valid = count > 0
         feats = feats / count.clamp(min=1).to(feats.dtype)[:, None]
         return feats, valid
 
     def query(self, points_world: torch.Tensor, block_ids: list[int] | None = None,
               with_colour: bool = True) -> MapSample:
-        """Evaluate SDF and colour at ``(N, 3)`` world points; decoders run on valid points only."""
+        """Evaluate SDF and colour at ``(N, 3)`` world points (0 at invalid points).
+
+        The decoders run on every point (dense, no scatter); invalid points are masked afterwards,
+        which is cheaper on CPU than compacting when most samples lie in blocks, as they do.
+        """
         feats, valid = self.grid_features(points_world, block_ids)
-        n = points_world.shape[0]
-        sdf = points_world.new_zeros(n)
-        rgb = points_world.new_zeros(n, 3)
-        idx = valid.nonzero(as_tuple=True)[0]
-        if idx.numel():
-            blob = self.one_blob(points_world[idx])
-            if with_colour:
-                s, c = self.decoders(blob, feats[idx])
-                rgb = rgb.index_put((idx,), c.to(rgb.dtype))
-            else:
-                s = self.decoders.sdf_only(blob, feats[idx])
-            sdf = sdf.index_put((idx,), s.to(sdf.dtype))
-        return MapSample(sdf, rgb, valid)
+        blob = self.one_blob(points_world)
+        mask = valid.to(feats.dtype)
+        if with_colour:
+            sdf, rgb = self.decoders(blob, feats)
+            return MapSample(sdf * mask, rgb * mask[:, None], valid)
+        sdf = self.decoders.sdf_only(blob, feats)
+        return MapSample(sdf * mask, points_world.new_zeros(points_world.shape[0], 3), valid)
 
     # ------------------------------------------------------------------ allocation
 

@@ -1,0 +1,125 @@
+// Multi-resolution hash encoding of a neural block: Python binding of the CPU kernels in
+// hash_grid_kernels.h (read that file's header for the maths, the layout and the work split).
+// Built on first use by neb_slam_core/scene/_ext.py (torch.utils.cpp_extension.load).
+//
+// The binding takes raw data pointers (Python ints from Tensor.data_ptr()) and sizes, and includes
+// pybind11 only, not torch/extension.h: that keeps the first-use compile at seconds instead of about a
+// minute. hash_grid.py checks devices, dtypes, shapes and contiguity and allocates the outputs before
+// calling in. The GIL is released while a kernel runs.
+
+#include <pybind11/pybind11.h>
+
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "hash_grid_kernels.h"
+
+namespace py = pybind11;
+using neb_hash_grid::Level;
+
+namespace {
+
+template <typename P>
+P* as_ptr(uintptr_t address) {
+  return reinterpret_cast<P*>(address);
+}
+
+// Level table from the HashGrid buffers: offsets (L + 1) int64, resolutions (L) int64, dense (L) bool.
+std::vector<Level> make_levels(int64_t n_levels, uintptr_t offsets, uintptr_t resolutions, uintptr_t dense,
+                               int64_t table_size) {
+  if (n_levels < 1) throw std::invalid_argument("hash_grid: need at least one level");
+  if (table_size < 1 || (table_size & (table_size - 1)) != 0 || table_size > (int64_t(1) << 31))
+    throw std::invalid_argument("hash_grid: table_size must be a power of two <= 2^31, got " +
+                                std::to_string(table_size));
+  const int64_t* o = as_ptr<const int64_t>(offsets);
+  const int64_t* r = as_ptr<const int64_t>(resolutions);
+  const bool* d = as_ptr<const bool>(dense);
+  std::vector<Level> levels(n_levels);
+  for (int64_t l = 0; l < n_levels; ++l) {
+    if (r[l] < 1 || r[l] >= (int64_t(1) << 30))
+      throw std::invalid_argument("hash_grid: level " + std::to_string(l) + " resolution out of range: " +
+                                  std::to_string(r[l]));
+    Level& lv = levels[l];
+    lv.offset = o[l];
+    lv.res = static_cast<int32_t>(r[l]);
+    lv.dense = d[l];
+    lv.mask = static_cast<uint32_t>(table_size - 1);
+    int64_t rows = table_size;
+    lv.stride_y = lv.stride_z = 0;
+    if (lv.dense) {
+      const int64_t side = r[l] + 1;
+      rows = side * side * side;
+      if (rows > table_size)
+        throw std::invalid_argument("hash_grid: dense level " + std::to_string(l) + " needs more rows than T");
+      lv.stride_y = static_cast<int32_t>(side);
+      lv.stride_z = static_cast<int32_t>(side * side);
+    }
+    if (o[l + 1] - o[l] != rows)
+      throw std::invalid_argument("hash_grid: level " + std::to_string(l) + " owns " +
+                                  std::to_string(o[l + 1] - o[l]) + " rows but its indexing needs " +
+                                  std::to_string(rows));
+  }
+  return levels;
+}
+
+// Runs STATEMENT with T (float for dtype code 0, double for 1) and kF bound to the runtime dtype code and
+// feature count. Only F = 2 (the paper's) is compiled: every extra F adds seconds to the first-use build;
+// hash_grid.py sends other F to the plain-torch reference.
+#define NEB_DISPATCH_F(F_VALUE, STATEMENT)                                                              \
+  switch (F_VALUE) {                                                                                    \
+    case 2: { constexpr int kF = 2; STATEMENT; break; }                                                 \
+    default:                                                                                            \
+      throw std::invalid_argument("hash_grid: the fast path is built for 2 features per level, got " +  \
+                                  std::to_string(F_VALUE));                                             \
+  }
+#define NEB_DISPATCH(DTYPE, F_VALUE, STATEMENT)                                                         \
+  if ((DTYPE) == 0) {                                                                                   \
+    using T = float;                                                                                    \
+    NEB_DISPATCH_F(F_VALUE, STATEMENT)                                                                  \
+  } else if ((DTYPE) == 1) {                                                                            \
+    using T = double;                                                                                   \
+    NEB_DISPATCH_F(F_VALUE, STATEMENT)                                                                  \
+  } else {                                                                                              \
+    throw std::invalid_argument("hash_grid: dtype code must be 0 (float32) or 1 (float64)");           \
+  }
+
+// x (n, 3), table (E, F), out (n, L*F): all contiguous, same dtype, allocated by the caller.
+void forward(int dtype, int64_t F, uintptr_t x, uintptr_t table, uintptr_t out, int64_t n, int64_t n_levels,
+             uintptr_t offsets, uintptr_t resolutions, uintptr_t dense, int64_t table_size, int n_threads) {
+  const auto levels = make_levels(n_levels, offsets, resolutions, dense, table_size);
+  if (n <= 0) return;
+  NEB_DISPATCH(dtype, F,
+               (neb_hash_grid::forward<T, kF>(as_ptr<const T>(x), as_ptr<const T>(table), as_ptr<T>(out), n,
+                                              levels, n_threads)));
+}
+
+// grad_out (n, L*F). grad_x (n, 3) or 0 when not wanted (fully written); grad_table (E, F) or 0 when not
+// wanted (must be zero-filled by the caller: the kernel adds into it).
+void backward(int dtype, int64_t F, uintptr_t grad_out, uintptr_t x, uintptr_t table, uintptr_t grad_x,
+              uintptr_t grad_table, int64_t n, int64_t n_levels, uintptr_t offsets, uintptr_t resolutions,
+              uintptr_t dense, int64_t table_size, int n_threads) {
+  const auto levels = make_levels(n_levels, offsets, resolutions, dense, table_size);
+  if (n <= 0 || (!grad_x && !grad_table)) return;
+  if (grad_table) {
+    NEB_DISPATCH(dtype, F,
+                 (neb_hash_grid::backward_table<T, kF>(as_ptr<const T>(grad_out), as_ptr<const T>(x),
+                                                       as_ptr<const T>(table), as_ptr<T>(grad_table),
+                                                       grad_x ? as_ptr<T>(grad_x) : nullptr, n, levels, n_threads)));
+  } else {
+    NEB_DISPATCH(dtype, F,
+                 (neb_hash_grid::backward_points<T, kF>(as_ptr<const T>(grad_out), as_ptr<const T>(x),
+                                                        as_ptr<const T>(table), as_ptr<T>(grad_x), n, levels,
+                                                        n_threads)));
+  }
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.doc() = "NeB-SLAM multi-resolution hash encoding: CPU forward and backward on raw buffers";
+  m.def("forward", &forward, "encode points: x (n, 3) -> out (n, L*F)", py::call_guard<py::gil_scoped_release>());
+  m.def("backward", &backward, "gradients w.r.t. the points and/or the table",
+        py::call_guard<py::gil_scoped_release>());
+}

@@ -1,0 +1,23 @@
+"""Packaging of the ROS 2 nodes (ament_python): built by `colcon build`, run by `ros2 run neb_slam_ros <node>`."""
+
+from setuptools import setup
+
+PACKAGE = "neb_slam_ros"
+#: executable name -> module in neb_slam_ros exposing main()
+NODES = ("tracker", "mapper", "loop_closer", "bag_replay", "slam")
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="NeB-SLAM ROS 2 nodes over neb_slam_core",
+    license="MIT",
+    packages=[PACKAGE],
+    data_files=[
+        # the ament index marker and the manifest: how `ros2 run` / `ros2 pkg` find the package
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    entry_points={"console_scripts": [f"{node} = {PACKAGE}.{node}:main" for node in NODES]},
+)

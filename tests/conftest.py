@@ -18,3 +18,11 @@ def tum_dir() -> Path:
     if not (TUM_300 / "rgb.txt").is_file():
         pytest.skip(f"real TUM data not found at {TUM_300} (set NEB_SLAM_SHARED_DATA to its parent folder)")
     return TUM_300
+
+
+@pytest.fixture(scope="session")
+def small_scene(tmp_path_factory) -> Path:
+    """The 'small' synthetic preset (one furnished room, 96x72, 60 frames), generated once per session."""
+    from neb_slam_core.synth.generate import generate
+
+    return generate("small", tmp_path_factory.mktemp("synth") / "small", progress=False)

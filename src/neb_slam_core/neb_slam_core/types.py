@@ -74,3 +74,44 @@ class RgbdFrame:
     @property
     def stamp_s(self) -> float:
         return self.stamp_ns * 1e-9
+
+
+@dataclass
+class StepTimings:
+    """Milliseconds spent on one frame, by stage."""
+
+    track_ms: float = 0.0
+    allocate_ms: float = 0.0
+    map_ms: float = 0.0
+    total_ms: float = 0.0
+
+
+@dataclass
+class StepResult:
+    """What :meth:`neb_slam_core.slam.Slam.process` did with one frame.
+
+    Attributes:
+        frame_index: position of the frame in the stream (0 = first).
+        stamp_ns: the frame's stamp.
+        T_world_cam: estimated pose (float64 4x4) at the time the frame was processed.
+        is_keyframe: the frame became a keyframe.
+        new_block_id: id of the block it allocated, or None.
+        tau: the allocation ratio measured on it.
+        tracking_ok: False when tracking failed and the pose is the motion prediction.
+        failure_reason: why tracking failed ('' when it did not).
+        mapped: a mapping (joint optimisation) step ran after this frame.
+        n_blocks: blocks in the map after this frame.
+        timings: per-stage times.
+    """
+
+    frame_index: int
+    stamp_ns: int
+    T_world_cam: np.ndarray
+    is_keyframe: bool = False
+    new_block_id: int | None = None
+    tau: float = 0.0
+    tracking_ok: bool = True
+    failure_reason: str = ""
+    mapped: bool = False
+    n_blocks: int = 0
+    timings: StepTimings = field(default_factory=StepTimings)

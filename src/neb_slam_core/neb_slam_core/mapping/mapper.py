@@ -1,0 +1,91 @@
+"""Joint optimisation of blocks, decoders and keyframe poses over the keyframe store (the paper's
+mapping / bundle adjustment)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..config import MappingConfig, RenderConfig
+from ..geometry.lie import PoseSet
+from ..geometry.rays import rays_world
+from ..render.rays import RayBatch
+from ..render.renderer import objective
+from ..scene.block_map import BlockMap
+from .keyframes import KeyframeStore
+from .optimizer import MapOptimizer
+
+
+@dataclass
+class MappingResult:
+    """One mapping call: steps taken and the last total loss."""
+
+    iterations: int
+    loss: float
+
+
+class Mapper:
+    """Optimises the map (and, optionally, keyframe poses) on rays drawn from the keyframe store.
+
+    The map optimiser lives as long as the mapper, so Adam's state carries over between calls and
+    survives block allocation; keyframe poses get a fresh optimiser per call (the set of keyframes
+    changes between calls), and the first keyframe is held fixed to anchor the world frame.
+    """
+
+    def __init__(self, block_map: BlockMap, keyframes: KeyframeStore, cfg: MappingConfig, render_cfg: RenderConfig,
+                 seed: int = 0):
+        self.block_map = block_map
+        self.keyframes = keyframes
+        self.cfg = cfg
+        self.render_cfg = render_cfg
+        self.map_opt = MapOptimizer(block_map, cfg.grid_lr, cfg.decoder_lr)
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def optimise_on_rays(self, rays: RayBatch, iterations: int) -> MappingResult:
+        """Map-only optimisation on a fixed pool of world rays (the first frame's initialisation)."""
+        loss_value = float("nan")
+        for _ in range(iterations):
+            idx = torch.randint(len(rays), (self.cfg.n_rays,), generator=self.generator)
+            batch = RayBatch(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], rays.depth_m[idx])
+            self.map_opt.zero_grad()
+            loss, _ = objective(self.block_map, batch, self.render_cfg, None, generator=self.generator)
+            loss.total.backward()
+            self.map_opt.step()
+            loss_value = float(loss.total.detach())
+        return MappingResult(iterations, loss_value)
+
+    def optimise(self, iterations: int | None = None, optimise_poses: bool | None = None) -> MappingResult:
+        """``iterations`` joint steps over all keyframes plus the newest block's keyframes."""
+        iterations = self.cfg.iterations if iterations is None else iterations
+        optimise_poses = self.cfg.optimise_poses if optimise_poses is None else optimise_poses
+        kfs = self.keyframes
+        if len(kfs) == 0 or iterations == 0:
+            return MappingResult(0, float("nan"))
+        dirs, rgb, depth, owner = kfs.flat()
+        poses = PoseSet(kfs.poses()).to(dirs.device)
+        pose_opt = None
+        if optimise_poses and len(kfs) > 1:
+            pose_opt = torch.optim.Adam([poses.delta], lr=self.cfg.pose_lr)
+        newest_kfs = self.block_map.blocks[-1].keyframe_ids if len(self.block_map) > 1 else []
+        loss_value = float("nan")
+        for _ in range(iterations):
+            idx = kfs.draw(self.cfg.n_rays, self.generator)
+            if newest_kfs and self.cfg.n_rays_newest_block:
+                idx = torch.cat([idx, kfs.draw(self.cfg.n_rays_newest_block, self.generator, newest_kfs)])
+            T = poses.matrices(owner[idx]) if pose_opt is not None else poses.matrices(owner[idx]).detach()
+            origins, d = rays_world(T, dirs[idx])
+            batch = RayBatch(origins, d, rgb[idx], depth[idx])
+            self.map_opt.zero_grad()
+            if pose_opt is not None:
+                pose_opt.zero_grad(set_to_none=True)
+            loss, _ = objective(self.block_map, batch, self.render_cfg, None, generator=self.generator)
+            loss.total.backward()
+            self.map_opt.step()
+            if pose_opt is not None:
+                poses.delta.grad[0] = 0.0  # the first keyframe anchors the world frame
+                pose_opt.step()
+            loss_value = float(loss.total.detach())
+        if pose_opt is not None:
+            kfs.set_poses(poses.numpy())
+        return MappingResult(iterations, loss_value)

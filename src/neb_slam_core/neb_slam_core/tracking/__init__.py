@@ -1,0 +1,1 @@
+"""Tracking: camera pose optimisation by rendering the block map."""

@@ -35,7 +35,7 @@ def main() -> int:
     if (bag / "metadata.yaml").is_file():
         print(f"bag already there: {bag.relative_to(REPO)} (delete it to convert again)")
     else:
-        run(["convert", "tum", str(scene), str(bag)])
+        run(["convert", "tum", str(scene), str(bag), "--depth", "32FC1"])
 
     info = json.loads((scene / "scene.json").read_text()) if (scene / "scene.json").is_file() else {}
     print()

@@ -56,12 +56,19 @@ class DecoderConfig:
 
 @dataclass(frozen=True)
 class BlockConfig:
-    """Neural blocks and their allocation (paper: 5 m cubes, tau threshold 0.2)."""
+    """Neural blocks and their allocation (paper: 5 m cubes, tau threshold 0.2).
+
+    ``blend_m``: where blocks overlap, a point's features are the mean of the blocks' features (the
+    paper), weighted by a window that falls linearly to 0 over the last ``blend_m`` metres before each
+    block's faces. Deep in an overlap this is the plain mean; at a face the leaving block's weight is 0,
+    so features (and rendered depth) are continuous across seams. 0 gives the paper's plain mean.
+    """
 
     edge_m: float = 5.0
     grid: HashGridConfig = HashGridConfig()
     alloc_threshold: float = 0.2
     alloc_n_points: int = 2000
+    blend_m: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -116,3 +116,22 @@ def test_param_mb_is_blocks_times_grid_plus_decoders():
     # geometry (48+8)->32->16 and colour (48+15)->32->3 for this small grid (L*F = 8)
     assert decoders == 4 * ((56 * 32 + 32) + (32 * 16 + 16) + (63 * 32 + 32) + (32 * 3 + 3))
     assert abs(m.param_mb() - (2 * per_block + decoders) / 1e6) < 1e-12
+
+
+def test_features_blend_continuously_across_a_face_inside_another_block():
+    m = make_map()  # blend_m = 0.5 by default
+    a = m.add_block([0.0, 0.0, 0.0])  # x in [-2.5, 2.5]
+    b = m.add_block([3.0, 0.0, 0.0])  # x in [0.5, 5.5]
+    # 0.1 m inside a's face: a weighs 0.1 / 0.5 = 0.2, b (1.9 m from its faces) weighs 1
+    p = torch.tensor([[2.4, 0.3, -0.2]])
+    feats, _ = m.grid_features(p)
+    fa, fb = a.grid(a.to_local(p)), b.grid(b.to_local(p))
+    assert torch.allclose(feats, (0.2 * fa + fb) / 1.2, atol=1e-6)
+    # just inside and just outside a's face: the same features (continuous), although a's grid differs
+    inner, outer = torch.tensor([[2.5 - 1e-5, 0.3, -0.2]]), torch.tensor([[2.5 + 1e-5, 0.3, -0.2]])
+    assert torch.allclose(m.grid_features(inner)[0], m.grid_features(outer)[0], atol=1e-4)
+    assert not torch.allclose(a.grid(a.to_local(inner)), b.grid(b.to_local(inner)), atol=1e-4)
+    # with blend_m = 0 the paper's plain mean holds up to the face
+    plain = BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID, blend_m=0.0), grid_backend="reference", seed=3)
+    pa, pb = plain.add_block([0.0, 0.0, 0.0]), plain.add_block([3.0, 0.0, 0.0])
+    assert torch.allclose(plain.grid_features(p)[0], 0.5 * (pa.grid(pa.to_local(p)) + pb.grid(pb.to_local(p))), atol=1e-6)

@@ -130,7 +130,8 @@ class BlockMap(nn.Module):
 
     def grid_features(self, points_world: torch.Tensor,
                       block_ids: list[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean hash features over the containing blocks.
+        """Hash features averaged over the containing blocks (weighted by the blend window, see
+        :class:`~neb_slam_core.config.BlockConfig`).
 
         Args:
             points_world: ``(N, 3)`` world points.
@@ -149,17 +150,30 @@ class BlockMap(nn.Module):
             block = self.blocks[ids[0]]
             feats = block.grid(block.to_local(points_world).clamp(0.0, 1.0))
             return feats * valid[:, None].to(feats.dtype), valid
-        count = inside.sum(dim=1)
         feats = points_world.new_zeros(n, dim)
+        weight_sum = points_world.new_zeros(n)
         for m, block_id in enumerate(ids):
             idx = inside[:, m].nonzero(as_tuple=True)[0]
             if idx.numel() == 0:
                 continue
             block = self.blocks[block_id]
-            local = block.to_local(points_world[idx])
-            feats = feats.index_add(0, idx, block.grid(local).to(feats.dtype))
-        feats = feats / count.clamp(min=1).to(feats.dtype)[:, None]
+            p = points_world[idx]
+            w = self._blend_weight(block, p)
+            feats = feats.index_add(0, idx, block.grid(block.to_local(p)).to(feats.dtype) * w[:, None])
+            weight_sum = weight_sum.index_add(0, idx, w)
+        feats = feats / weight_sum.clamp(min=1e-12)[:, None]
         return feats, valid
+
+    def _blend_weight(self, block, points_world: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` window weight of ``block`` at points inside it: 1 deeper than ``blend_m`` from every face,
+        falling linearly to a tiny positive value at the faces (never exactly 0, so a point inside a
+        single block keeps its features)."""
+        blend = self.block_cfg.blend_m
+        if blend <= 0:
+            return points_world.new_ones(points_world.shape[0])
+        half = 0.5 * self.block_cfg.edge_m
+        to_face = half - (points_world - block.centre.to(points_world.dtype)).abs().amax(dim=-1)
+        return (to_face / blend).clamp(min=1e-6, max=1.0)
 
     def query(self, points_world: torch.Tensor, block_ids: list[int] | None = None,
               with_colour: bool = True) -> MapSample:

@@ -116,37 +116,101 @@ class MeshConfig:
 
 
 def config_to_dict(cfg) -> dict:
-    """A config dataclass (nested) -> plain dict (YAML/JSON friendly)."""
-    from dataclasses import asdict
+    """A config dataclass (nested) -> plain dict, fields in declaration order (YAML/JSON friendly).
 
-    return asdict(cfg)
-
-
-def config_from_dict(cls, data: dict, where: str = ""):
-    """Build config dataclass ``cls`` from a (nested) dict; unknown keys raise :class:`ConfigError`
-    naming the key, nested dataclass fields are built recursively, missing keys take defaults."""
+    Leaves that are subclasses of the builtin types (``numpy.float64`` is a ``float``) become the builtin
+    itself, so that safe YAML and JSON writers accept them.
+    """
     import dataclasses
-    import typing
 
+    out = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            out[f.name] = config_to_dict(value)
+        else:
+            out[f.name] = _builtin_value(value)
+    return out
+
+
+def _builtin_value(value):
+    for kind in (bool, int, float, str):  # bool first: it is a subclass of int
+        if isinstance(value, kind):
+            return kind(value)
+    return value
+
+
+def key_source(sources: dict[str, str] | None, key: str) -> str | None:
+    """Where dotted ``key`` was set according to ``sources`` (dotted key -> file or override): the entry of
+    ``key`` itself, else of its nearest listed parent (``"a.b"`` for ``"a.b.c"``), else of ``""``; None
+    when ``sources`` is empty."""
+    if not sources:
+        return None
+    k = key
+    while True:
+        if k in sources:
+            return sources[k]
+        if not k:
+            return None
+        k = k.rpartition(".")[0]
+
+
+def _config_error(sources: dict[str, str] | None, key: str, problem: str):
     from .errors import ConfigError
 
+    where = key_source(sources, key)
+    return ConfigError(f"{where + ': ' if where else ''}{key}: {problem}")
+
+
+def config_from_dict(cls, data: dict, where: str = "", sources: dict[str, str] | None = None):
+    """Build config dataclass ``cls`` from a (nested) dict.
+
+    Unknown keys and values of the wrong type raise :class:`ConfigError` naming the dotted key (and, when
+    ``sources`` maps dotted keys to the file or override that set them, that file; see :func:`key_source`).
+    Nested dataclass fields are built recursively (an empty or null section counts as ``{}``), missing
+    keys take the defaults, integers are accepted for float fields (and converted); nothing else is
+    converted: ``"0.1"`` for a float, ``1.0`` for an integer or ``1`` for a boolean are errors.
+    Range checks are :func:`neb_slam_core.config_io.validate`'s job.
+    """
+    import dataclasses
+    import difflib
+    import typing
+
+    prefix = where + "." if where else ""
+    if data is None:
+        data = {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{where or cls.__name__}: expected a mapping, got {type(data).__name__}")
+        raise _config_error(sources, where or cls.__name__,
+                            f"expected a mapping of {cls.__name__} parameters, got {type(data).__name__} {data!r}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs = {}
     for key, value in data.items():
+        name = f"{prefix}{key}"
         if key not in fields:
-            raise ConfigError(f"{where + '.' if where else ''}{key}: unknown parameter of {cls.__name__} "
-                              f"(known: {', '.join(fields)})")
-        hint = hints[key]
-        name = f"{where + '.' if where else ''}{key}"
-        if dataclasses.is_dataclass(hint):
-            kwargs[key] = config_from_dict(hint, value, name)
-        elif hint is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            close = difflib.get_close_matches(str(key), list(fields), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise _config_error(sources, name, f"unknown parameter of {cls.__name__}{hint} "
+                                               f"(known: {', '.join(fields)})")
+        kind = hints[key]
+        if dataclasses.is_dataclass(kind):
+            kwargs[key] = config_from_dict(kind, value, name, sources)
+        elif kind is float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise _config_error(sources, name, f"expected a number, got {value!r}")
             kwargs[key] = float(value)
-        elif hint in (int, bool, str) and not isinstance(value, hint) or (hint is int and isinstance(value, bool)):
-            raise ConfigError(f"{name}: expected {hint.__name__}, got {value!r}")
+        elif kind is int:
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise _config_error(sources, name, f"expected an integer, got {value!r}")
+            kwargs[key] = int(value)
+        elif kind is bool:
+            if not isinstance(value, bool):
+                raise _config_error(sources, name, f"expected true or false, got {value!r}")
+            kwargs[key] = value
+        elif kind is str:
+            if not isinstance(value, str):
+                raise _config_error(sources, name, f"expected a string, got {value!r}")
+            kwargs[key] = value
         else:
             kwargs[key] = value
     return cls(**kwargs)

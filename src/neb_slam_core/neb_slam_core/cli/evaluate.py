@@ -94,17 +94,19 @@ def _fmt(value: float | None, unit: str) -> str:
     return "n/a" if value is None else f"{value:.3f} {unit}"
 
 
-def run(args: argparse.Namespace) -> int:
-    from ..errors import DatasetError
-    from ..eval.trajectory_metrics import associate_trajectories, compute_ate, compute_rpe
-    from ..io.trajectory import read_tum_trajectory
+def trajectory_metrics(est, gt, *, max_dt_s: float = 0.02, align: bool = True, rpe_delta_s: float = 1.0,
+                       est_source: Path | None = None, gt_source: Path | None = None):
+    """ATE and RPE of trajectory ``est`` against ``gt`` (both :class:`~neb_slam_core.io.trajectory.Trajectory`).
 
-    est_path, gt_path, out_dir = _resolve_paths(args)
-    est = read_tum_trajectory(est_path)
-    gt = read_tum_trajectory(gt_path)
-    pair = associate_trajectories(est, gt, args.max_dt, est_source=est_path, gt_source=gt_path)
-    ate = compute_ate(pair, align=not args.no_align)
-    rpe = compute_rpe(pair, args.rpe_delta, "s")
+    Returns ``(metrics, ate)``: the JSON-ready figures this command writes (``ate_rmse_cm``, ...,
+    ``n_gt_poses``) and the :class:`~neb_slam_core.eval.trajectory_metrics.AteResult` (for plots and
+    mesh alignment). Raises :class:`DatasetError` when fewer than 3 poses associate.
+    """
+    from ..eval.trajectory_metrics import associate_trajectories, compute_ate, compute_rpe
+
+    pair = associate_trajectories(est, gt, max_dt_s, est_source=est_source, gt_source=gt_source)
+    ate = compute_ate(pair, align=align)
+    rpe = compute_rpe(pair, rpe_delta_s, "s")
     rpe_frame = compute_rpe(pair, 1, "frames")
 
     def cm(v: float | None) -> float | None:
@@ -117,19 +119,51 @@ def run(args: argparse.Namespace) -> int:
         "ate_max_cm": ate.max_cm,
         "rpe_trans_cm": cm(rpe.trans_rmse_m),
         "rpe_rot_deg": rpe.rot_rmse_deg,
-        "rpe_delta_s": args.rpe_delta,
+        "rpe_delta_s": rpe_delta_s,
         "rpe_frame_trans_cm": cm(rpe_frame.trans_rmse_m),
         "rpe_frame_rot_deg": rpe_frame.rot_rmse_deg,
         "n_poses": ate.n_matched,
         "n_est_poses": ate.n_est,
         "n_gt_poses": ate.n_gt,
     }
+    return metrics, ate
+
+
+def recon_metrics(recon) -> dict:
+    """The JSON-ready figures of a :class:`~neb_slam_core.eval.recon.ReconResult`."""
+    return {
+        "accuracy_cm": recon.accuracy_cm,
+        "completion_cm": recon.completion_cm,
+        "completion_ratio_pct": recon.completion_ratio_pct,
+        "depth_l1_cm": recon.depth_l1_cm,
+        "completion_threshold_cm": recon.completion_threshold_cm,
+        "recon_culled": recon.culled,
+    }
+
+
+def write_trajectory_plots(ate, out_dir: Path) -> list[Path]:
+    """``trajectory.png`` and ``ate_over_time.png`` of ``ate`` in ``out_dir``; returns their paths."""
+    from ..eval.plots import plot_ate_over_time, plot_trajectory, save_figure
+
+    return [save_figure(plot_trajectory(ate), out_dir / "trajectory.png"),
+            save_figure(plot_ate_over_time(ate), out_dir / "ate_over_time.png")]
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import DatasetError
+    from ..io.trajectory import read_tum_trajectory
+
+    est_path, gt_path, out_dir = _resolve_paths(args)
+    est = read_tum_trajectory(est_path)
+    gt = read_tum_trajectory(gt_path)
+    metrics, ate = trajectory_metrics(est, gt, max_dt_s=args.max_dt, align=not args.no_align,
+                                      rpe_delta_s=args.rpe_delta, est_source=est_path, gt_source=gt_path)
     rows = [
         ("matched poses", f"{ate.n_matched} of {ate.n_est} (ground truth {ate.n_gt})"),
         ("ATE RMSE", _fmt(ate.rmse_cm, "cm")),
         ("ATE mean / median / max", f"{ate.mean_cm:.3f} / {ate.median_cm:.3f} / {ate.max_cm:.3f} cm"),
-        (f"RPE trans / rot ({args.rpe_delta:g} s)", f"{_fmt(metrics['rpe_trans_cm'], 'cm')} / {_fmt(rpe.rot_rmse_deg, 'deg')}"),
-        ("RPE trans / rot (frame)", f"{_fmt(metrics['rpe_frame_trans_cm'], 'cm')} / {_fmt(rpe_frame.rot_rmse_deg, 'deg')}"),
+        (f"RPE trans / rot ({args.rpe_delta:g} s)", f"{_fmt(metrics['rpe_trans_cm'], 'cm')} / {_fmt(metrics['rpe_rot_deg'], 'deg')}"),
+        ("RPE trans / rot (frame)", f"{_fmt(metrics['rpe_frame_trans_cm'], 'cm')} / {_fmt(metrics['rpe_frame_rot_deg'], 'deg')}"),
     ]
 
     if args.gt_mesh is not None:
@@ -137,14 +171,7 @@ def run(args: argparse.Namespace) -> int:
         if rec_path is None:
             raise DatasetError(None, "--gt-mesh needs a reconstruction: give --mesh or a run directory with mesh.ply")
         recon = _evaluate_recon(args, rec_path, ate)
-        metrics.update({
-            "accuracy_cm": recon.accuracy_cm,
-            "completion_cm": recon.completion_cm,
-            "completion_ratio_pct": recon.completion_ratio_pct,
-            "depth_l1_cm": recon.depth_l1_cm,
-            "completion_threshold_cm": recon.completion_threshold_cm,
-            "recon_culled": recon.culled,
-        })
+        metrics.update(recon_metrics(recon))
         rows += [
             ("accuracy", _fmt(recon.accuracy_cm, "cm")),
             ("completion", _fmt(recon.completion_cm, "cm")),
@@ -164,29 +191,19 @@ def run(args: argparse.Namespace) -> int:
         merge_metrics(out_dir / METRICS_FILE, metrics)
         written = [out_dir / METRICS_FILE]
         if not args.no_plots:
-            from ..eval.plots import plot_ate_over_time, plot_trajectory, save_figure
-
-            written.append(save_figure(plot_trajectory(ate), out_dir / "trajectory.png"))
-            written.append(save_figure(plot_ate_over_time(ate), out_dir / "ate_over_time.png"))
+            written += write_trajectory_plots(ate, out_dir)
         print("wrote " + ", ".join(str(p) for p in written))
     return 0
 
 
 def _evaluate_recon(args: argparse.Namespace, rec_path: Path, ate):
     import logging
-    from dataclasses import replace
 
     from ..datasets.tum import read_intrinsics_json
     from ..errors import ConfigError, DatasetError
-    from ..eval.recon import DepthL1Config, ReconConfig, evaluate_reconstruction, load_mesh
 
     if args.n_points < 1 or args.depth_views < 0 or args.cull_stride < 1 or not args.threshold_cm > 0:
         raise ConfigError("--n-points and --cull-stride must be >= 1, --depth-views >= 0, --threshold-cm > 0")
-    rec_mesh = load_mesh(rec_path)
-    gt_mesh = load_mesh(args.gt_mesh)
-    if args.align_mesh:
-        rec_mesh = rec_mesh.copy()
-        rec_mesh.apply_transform(ate.T_gt_est)
     poses = intrinsics = None
     if not args.no_cull:
         if args.intrinsics is not None and not args.intrinsics.is_file():
@@ -198,6 +215,35 @@ def _evaluate_recon(args: argparse.Namespace, rec_path: Path, ate):
         else:
             logging.getLogger(__name__).warning(
                 "no intrinsics (%s): reconstruction metrics are computed without culling", intr_path or "--intrinsics")
-    config = ReconConfig(n_points=args.n_points, completion_threshold_m=args.threshold_cm / 100.0, seed=args.seed,
-                         depth_l1=replace(DepthL1Config(), n_views=args.depth_views))
-    return evaluate_reconstruction(rec_mesh, gt_mesh, config, poses, intrinsics)
+    return evaluate_mesh_files(rec_path, args.gt_mesh, T_gt_rec=ate.T_gt_est if args.align_mesh else None,
+                               cull_poses=poses, intrinsics=intrinsics, n_points=args.n_points,
+                               threshold_cm=args.threshold_cm, depth_views=args.depth_views, seed=args.seed)
+
+
+def evaluate_mesh_files(rec_path: Path, gt_mesh_path: Path, *, T_gt_rec=None, cull_poses=None, intrinsics=None,
+                        n_points: int = 200_000, threshold_cm: float = 5.0, depth_views: int = 1000, seed: int = 0):
+    """Reconstruction metrics of the mesh file ``rec_path`` against ``gt_mesh_path``.
+
+    Args:
+        T_gt_rec: ``(4, 4)`` map of the reconstruction into the ground truth's frame (None: already there).
+        cull_poses: ``(m, 4, 4)`` ground-truth camera poses to cull both meshes to (with ``intrinsics``);
+            None compares the whole meshes.
+        intrinsics: the recording camera (:class:`~neb_slam_core.types.Intrinsics`).
+
+    Returns:
+        :class:`~neb_slam_core.eval.recon.ReconResult`.
+    """
+    from dataclasses import replace
+
+    from ..eval.recon import DepthL1Config, ReconConfig, evaluate_reconstruction, load_mesh
+
+    rec_mesh = load_mesh(rec_path)
+    gt_mesh = load_mesh(gt_mesh_path)
+    if T_gt_rec is not None:
+        rec_mesh = rec_mesh.copy()
+        rec_mesh.apply_transform(T_gt_rec)
+    config = ReconConfig(n_points=n_points, completion_threshold_m=threshold_cm / 100.0, seed=seed,
+                         depth_l1=replace(DepthL1Config(), n_views=depth_views))
+    if cull_poses is None or intrinsics is None:
+        cull_poses = intrinsics = None
+    return evaluate_reconstruction(rec_mesh, gt_mesh, config, cull_poses, intrinsics)

@@ -20,6 +20,7 @@ COMMANDS: dict[str, str] = {
     "convert": "convert",
     "info": "info",
     "eval": "evaluate",
+    "run": "run",
 }
 
 

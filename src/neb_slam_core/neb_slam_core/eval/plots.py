@@ -72,6 +72,70 @@ def plot_ate_over_time(ate: AteResult, title: str | None = None) -> Figure:
     return fig
 
 
+def plot_block_allocation(positions_xyz: np.ndarray, block_centres_xyz: np.ndarray, edge_m: float,
+                          alloc_frame_indices: np.ndarray, alloc_cam_xyz: np.ndarray, title: str | None = None) -> Figure:
+    """Top view of the neural blocks and the trajectory that allocated them (the paper's allocation figure).
+
+    Each block is drawn as the outline of its ``edge_m`` square footprint around its centre, coloured by
+    the index of the frame that allocated it (colour bar); that frame's camera centre is marked with a
+    triangle of the same colour. The view is the plane of the two axes along which the trajectory
+    extends most (as in :func:`plot_trajectory`).
+
+    Args:
+        positions_xyz: ``(N, 3)`` camera centres of the trajectory, world frame, metres.
+        block_centres_xyz: ``(M, 3)`` block centres, same frame.
+        edge_m: block edge length, metres.
+        alloc_frame_indices: ``(M,)`` int index of the frame that allocated each block; -1 when unknown
+            (such blocks are drawn grey and get no camera marker).
+        alloc_cam_xyz: ``(M, 3)`` camera centre of the allocating frame (ignored where the index is -1).
+    """
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.patches import Rectangle
+
+    positions = np.asarray(positions_xyz, dtype=np.float64).reshape(-1, 3)
+    centres = np.asarray(block_centres_xyz, dtype=np.float64).reshape(-1, 3)
+    frames = np.asarray(alloc_frame_indices, dtype=np.int64).reshape(-1)
+    cams = np.asarray(alloc_cam_xyz, dtype=np.float64).reshape(-1, 3)
+    if not (len(centres) == len(frames) == len(cams)):
+        raise ValueError(f"plot_block_allocation: {len(centres)} block centres, {len(frames)} frame indices and "
+                         f"{len(cams)} camera positions; expected one of each per block")
+    ref = positions if len(positions) else centres
+    a, b = top_view_axes(ref) if len(ref) else (0, 1)
+    known = frames >= 0
+    cmap = colormaps["viridis"]
+    lo, hi = (int(frames[known].min()), int(frames[known].max())) if known.any() else (0, 1)
+    norm = Normalize(vmin=lo, vmax=hi if hi > lo else lo + 1)
+    half = 0.5 * edge_m
+
+    fig = _new_figure(6.4, 5.6)
+    ax = fig.add_subplot()
+    for m, (c, f) in enumerate(zip(centres, frames)):
+        colour = cmap(norm(f)) if f >= 0 else "0.6"
+        ax.add_patch(Rectangle((c[a] - half, c[b] - half), edge_m, edge_m, fill=True, facecolor=colour, alpha=0.08,
+                               edgecolor="none", zorder=1))
+        ax.add_patch(Rectangle((c[a] - half, c[b] - half), edge_m, edge_m, fill=False, edgecolor=colour,
+                               linewidth=1.5, zorder=2, gid=f"block-{m}"))
+        ax.annotate(str(m), (c[a], c[b]), ha="center", va="center", fontsize="small", color="0.25", zorder=2)
+    if len(positions):
+        ax.plot(positions[:, a], positions[:, b], color="black", linewidth=1.0, label="trajectory", zorder=3)
+    if known.any():
+        ax.scatter(cams[known, a], cams[known, b], c=frames[known], cmap=cmap, norm=norm, marker="^", s=70,
+                   edgecolors="black", linewidths=0.6, zorder=4, label="allocating frame")
+    ax.autoscale_view()
+    ax.set_xlabel(f"{_AXIS_NAMES[a]} [m]")
+    ax.set_ylabel(f"{_AXIS_NAMES[b]} [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, linewidth=0.3)
+    if len(positions) or known.any():
+        ax.legend(loc="best", fontsize="small")
+    fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="allocating frame index")
+    n = len(centres)
+    ax.set_title(title or f"block allocation: {n} block{'' if n == 1 else 's'} of {edge_m:g} m")
+    return fig
+
+
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120) -> Path:
     """Write ``fig`` as a PNG at ``path`` (parent folders created); returns the path."""
     path = Path(path)

@@ -69,7 +69,7 @@ class Tracker:
                 value = float(loss.total.detach())
                 if n_valid >= self.cfg.min_valid_rays and value < best[0]:
                     ok = out.ray_valid & (rays.depth_m > 0)
-                    resid = float((out.depth_m - rays.depth_m)[ok].abs().mean()) if ok.any() else float("inf")
+                    resid = float((out.depth_m - rays.depth_m)[ok].abs().mean().detach()) if ok.any() else float("inf")
                     best = (value, pose.numpy()[0], resid, n_valid)
                 opt.zero_grad(set_to_none=True)
                 loss.total.backward()

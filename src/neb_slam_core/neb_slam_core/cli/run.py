@@ -1,0 +1,249 @@
+"""Run NeB-SLAM offline on a dataset folder or a bag and write a run directory.
+
+The run directory (default ``runs/<dataset-name>-<YYYYmmdd-HHMMSS>``) holds config.yaml (the resolved
+configuration), intrinsics.json, trajectory.txt (TUM format: the input frames' stamps, corrected
+poses), groundtruth.txt (the input's ground truth at those stamps, when it has one), timings.csv (per
+frame), map.pt (map checkpoint with the keyframe poses), mesh.ply, metrics.json, and the plots
+trajectory.png and ate_over_time.png (with ground truth) and blocks.png (block allocation, top view).
+See ``neb_slam_core.io.run_dir`` for each file's contents.
+
+Configuration: --config takes a preset name (base, tum, scannet, replica, synthetic, small, ci) or a
+YAML file; by default it follows the dataset: TUM -> tum, ScanNet -> scannet, Replica -> replica, a
+folder written by ``neb-slam synth`` (it holds scene.json) -> synthetic, anything else -> base.
+--set key=value (repeatable; dotted keys such as tracking.iterations=20) overrides single values;
+--seed, --device and --mesh-voxel override seed, device and mesh.voxel_size_m.
+
+First pose: the run starts from the first processed frame's ground-truth pose when the dataset has
+one, so the trajectory and the mesh are in the ground truth's world frame and the mesh compares with
+a ground-truth mesh without alignment; otherwise from the identity.
+
+Metrics: ATE / RPE when the input has ground truth; accuracy, completion and Depth L1 when a
+ground-truth mesh is given with --gt-mesh or the input folder holds the mesh.ply of ``neb-slam synth``
+(both meshes culled to what the ground-truth cameras saw).
+
+Ctrl-C stops processing; everything computed so far (trajectory of the processed frames, map, mesh,
+metrics, plots) is then written and the command exits with code 130. A second Ctrl-C aborts the
+writing. A crash inside the engine also writes what exists before the error is reported. The last
+line printed is the run directory.
+
+Examples:
+    neb-slam run ../shared/data/tum_fr1_xyz_300 --frames 100
+    neb-slam run data/synth_small --config ci --out runs/smoke --no-mesh
+    neb-slam run bags/fr1_xyz --config tum --set tracking.iterations=20 mapping.every=4 --stride 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+HELP = "run SLAM offline on a dataset folder or bag and write a run directory (trajectory, map, mesh, metrics)"
+
+log = logging.getLogger(__name__)
+
+#: dataset loader name -> config preset
+PRESET_OF_FORMAT = {"tum": "tum", "scannet": "scannet", "replica": "replica"}
+SYNTH_SCENE_FILE = "scene.json"  # written by `neb-slam synth`
+SYNTH_MESH_FILE = "mesh.ply"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", type=Path, help="dataset folder or bag")
+    p.add_argument("--config", metavar="NAME|PATH", help="config preset or YAML file (default: from the dataset)")
+    p.add_argument("--set", dest="overrides", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="override config values, e.g. --set tracking.iterations=20 mapping.every=4")
+    p.add_argument("--out", type=Path, metavar="DIR", help="run directory (default: runs/<dataset>-<date>-<time>)")
+    p.add_argument("--frames", type=int, metavar="N", help="process at most N frames (after --start, with --stride)")
+    p.add_argument("--stride", type=int, default=1, metavar="K", help="use every K-th frame (default 1)")
+    p.add_argument("--start", type=int, default=0, metavar="I", help="first frame index (default 0)")
+    p.add_argument("--seed", type=int, metavar="S", help="random seed (default: the config's)")
+    p.add_argument("--device", choices=("cpu", "cuda"), help="torch device (default: the config's)")
+    p.add_argument("--format", metavar="FMT", help="dataset loader (default: detect from the layout)")
+    g = p.add_argument_group("mesh and reconstruction")
+    g.add_argument("--no-mesh", action="store_true", help="do not extract the mesh")
+    g.add_argument("--mesh-voxel", type=float, metavar="M", help="marching-cubes voxel size in metres "
+                                                                  "(default: the config's mesh.voxel_size_m)")
+    g.add_argument("--gt-mesh", type=Path, metavar="PATH", help="ground-truth mesh for accuracy / completion "
+                                                                "(default: the synth folder's mesh.ply)")
+    g.add_argument("--recon-points", type=int, default=200_000, metavar="N",
+                   help="points sampled per mesh for the reconstruction metrics (default 200000)")
+    g.add_argument("--depth-views", type=int, default=1000, metavar="N",
+                   help="virtual views for Depth L1, 0 to skip (default 1000)")
+
+
+def default_preset(dataset) -> str:
+    """The config preset for a dataset (see the module docstring)."""
+    root = Path(dataset.root)
+    if root.is_dir() and (root / SYNTH_SCENE_FILE).is_file():
+        return "synthetic"
+    return PRESET_OF_FORMAT.get(dataset.name, "base")
+
+
+def select_frames(n_available: int, start: int = 0, stride: int = 1, frames: int | None = None) -> range:
+    """Input indices to process: from ``start`` every ``stride``-th, at most ``frames`` of them."""
+    from ..errors import ConfigError
+
+    if stride < 1:
+        raise ConfigError(f"--stride must be >= 1, got {stride}")
+    if frames is not None and frames < 1:
+        raise ConfigError(f"--frames must be >= 1, got {frames}")
+    if not 0 <= start < n_available:
+        raise ConfigError(f"--start {start} is outside the dataset's {n_available} frames (0..{n_available - 1})")
+    picked = range(start, n_available, stride)
+    return picked if frames is None else picked[:frames]
+
+
+def default_out_dir(source: Path, now: time.struct_time | None = None, parent: Path = Path("runs")) -> Path:
+    """``runs/<dataset-name>-<YYYYmmdd-HHMMSS>`` (with ``-2``, ``-3``... when it exists already)."""
+    src = Path(source).resolve()
+    name = src.stem if src.is_file() else src.name
+    base = parent / f"{name}-{time.strftime('%Y%m%d-%H%M%S', now or time.localtime())}"
+    out, k = base, 1
+    while out.exists():
+        k += 1
+        out = base.with_name(f"{base.name}-{k}")
+    return out
+
+
+def resolve_config(args: argparse.Namespace, dataset):
+    """The run's :class:`~neb_slam_core.config.SlamConfig`: preset or file, then --set, then --seed,
+    --device and --mesh-voxel (all validated by :func:`~neb_slam_core.config_io.load_config`)."""
+    from ..config_io import load_config
+    from ..errors import ConfigError
+
+    overrides = list(args.overrides or [])
+    if args.seed is not None:
+        overrides.append(f"seed={args.seed}")
+    if args.device is not None:
+        overrides.append(f"device={args.device}")
+    if args.mesh_voxel is not None:
+        overrides.append(f"mesh.voxel_size_m={args.mesh_voxel!r}")
+    cfg = load_config(args.config or default_preset(dataset), overrides)
+    if cfg.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device {cfg.device!r}: CUDA is not available on this machine (use --device cpu)")
+    return cfg
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..datasets import open_dataset
+    from ..errors import ConfigError, DatasetError
+    from ..io.run_dir import RunDirectory, RunLog, RunOutputOptions, write_run
+
+    # --- check everything before the (long) run starts
+    dataset = open_dataset(args.source, args.format)
+    cfg = resolve_config(args, dataset)
+    if len(dataset) == 0:
+        raise DatasetError(args.source, "the dataset has no frames")
+    indices = select_frames(len(dataset), args.start, args.stride, args.frames)
+    if args.recon_points < 1 or args.depth_views < 0:
+        raise ConfigError("--recon-points must be >= 1 and --depth-views >= 0")
+    gt_mesh = args.gt_mesh
+    if gt_mesh is not None and not gt_mesh.is_file():
+        raise DatasetError(gt_mesh, "ground-truth mesh not found")
+    root = Path(dataset.root)
+    if gt_mesh is None and root.is_dir() and (root / SYNTH_SCENE_FILE).is_file() and (root / SYNTH_MESH_FILE).is_file():
+        gt_mesh = root / SYNTH_MESH_FILE
+    first = dataset[indices[0]]
+    if first.T_world_cam is not None:
+        T_world_first = first.T_world_cam
+    else:
+        T_world_first = np.eye(4)
+        if dataset.has_ground_truth:
+            log.warning("frame %d has no ground-truth pose: the run starts from the identity, and the mesh is "
+                        "aligned by the ATE fit before it is compared", first.index)
+
+    run_dir = RunDirectory.create(args.out or default_out_dir(args.source))
+    run_dir.write_config(cfg)
+    run_dir.write_intrinsics(first.intrinsics)
+    options = RunOutputOptions(mesh=not args.no_mesh, mesh_cfg=cfg.mesh, gt_mesh=gt_mesh,
+                               first_pose_from_gt=first.T_world_cam is not None,
+                               recon_points=args.recon_points, depth_views=args.depth_views)
+    print(f"{dataset!r}: {len(indices)} frames, config {args.config or default_preset(dataset)}, "
+          f"writing to {run_dir.path}", file=sys.stderr)
+
+    from ..slam import Slam
+
+    slam = Slam(cfg, T_world_first)
+    run_log = RunLog()
+    t_start = time.perf_counter()
+    try:
+        status = _process(slam, dataset, indices, first, run_log)
+    except Exception as exc:
+        wall_s = time.perf_counter() - t_start
+        log.error("the run failed (%s: %s); writing the %d frames processed so far to %s",
+                  type(exc).__name__, exc, slam.n_frames, run_dir.path)
+        try:
+            write_run(run_dir, slam, run_log, options, "crashed", wall_s)
+        except KeyboardInterrupt:
+            log.error("writing aborted by Ctrl-C: %s is incomplete", run_dir.path)
+        except Exception as write_exc:  # report, but the original error is the one that matters
+            log.error("writing the partial run failed too (%s: %s)", type(write_exc).__name__, write_exc)
+        print(run_dir.path)
+        raise
+    wall_s = time.perf_counter() - t_start
+    if status == "interrupted":
+        print(f"interrupted after {slam.n_frames} of {len(indices)} frames: writing what was computed "
+              f"(Ctrl-C again to abort)", file=sys.stderr)
+    try:
+        summary = write_run(run_dir, slam, run_log, options, status, wall_s)
+    except KeyboardInterrupt:
+        print(f"writing aborted: {run_dir.path} is incomplete", file=sys.stderr)
+        return 130
+    _print_summary(summary)
+    print(run_dir.path)
+    return 130 if status == "interrupted" else 0
+
+
+def _process(slam, dataset, indices: range, first, run_log) -> str:
+    """The per-frame loop with its progress bar; returns 'complete' or 'interrupted' (Ctrl-C)."""
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    t0 = time.perf_counter()
+    with logging_redirect_tqdm(), tqdm(total=len(indices), desc="slam", unit="frame", dynamic_ncols=True) as bar:
+        try:
+            for k, i in enumerate(indices):
+                frame = first if k == 0 else dataset[i]
+                run_log.begin(frame)
+                result = slam.process(frame)
+                run_log.end(result)
+                bar.update(1)
+                bar.set_postfix(fps=f"{bar.n / max(time.perf_counter() - t0, 1e-9):.2f}", blocks=result.n_blocks,
+                                kf=len(slam.keyframes), refresh=False)
+        except KeyboardInterrupt:
+            return "interrupted"
+    return "complete"
+
+
+def _print_summary(summary) -> None:
+    m = summary.metrics
+
+    def fmt(key: str, unit: str = "", digits: int = 3) -> str:
+        v = m.get(key)
+        return "n/a" if v is None else f"{v:.{digits}f}{' ' + unit if unit else ''}"
+
+    rows = [("status", f"{summary.status}, {summary.n_frames} frames"),
+            ("blocks / parameters", f"{m.get('n_blocks')} / {fmt('param_mb', 'MB', 2)}"),
+            ("keyframes", str(m.get("n_keyframes"))),
+            ("tracking failures", str(m.get("n_tracking_failures"))),
+            ("time per frame", f"{fmt('s_per_frame', 's')} engine, {fmt('wall_s_per_frame', 's')} wall"),
+            ("tracking / mapping per frame", f"{fmt('track_ms_mean', 'ms', 1)} / {fmt('map_ms_mean', 'ms', 1)}")]
+    if "ate_rmse_cm" in m:
+        rows.append(("ATE RMSE", f"{fmt('ate_rmse_cm', 'cm')} ({m.get('n_poses')} poses)"))
+    if "accuracy_cm" in m:
+        rows += [("accuracy / completion", f"{fmt('accuracy_cm', 'cm')} / {fmt('completion_cm', 'cm')}"),
+                 ("completion ratio", fmt("completion_ratio_pct", "%", 2)),
+                 ("depth L1", fmt("depth_l1_cm", "cm"))]
+    for s in summary.skipped:
+        rows.append(("skipped", s))
+    width = max(len(name) for name, _ in rows)
+    for name, value in rows:
+        print(f"  {name:<{width}}  {value}")

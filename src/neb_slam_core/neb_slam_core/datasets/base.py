@@ -177,6 +177,28 @@ def read_matrix(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:
     return values.reshape(shape)
 
 
+def read_number_rows(path: Path, n_per_line: int, what: str, missing: str) -> list[tuple[int, np.ndarray]]:
+    """Read a text file of ``n_per_line`` numbers per non-empty line -> [(line number, values)].
+
+    ``what`` describes one line for error messages (e.g. 'a row-major 4x4'); ``missing`` is the
+    message when the file does not exist.
+    """
+    if not path.is_file():
+        raise DatasetError(path, missing)
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            values = np.array(line.split(), dtype=np.float64)
+        except ValueError:
+            raise DatasetError(path, f"line {lineno}: expected {n_per_line} numbers, got {line.strip()!r}") from None
+        if values.size != n_per_line:
+            raise DatasetError(path, f"line {lineno}: expected {n_per_line} numbers ({what}), got {values.size}")
+        rows.append((lineno, values))
+    return rows
+
+
 def associate(query_ns: np.ndarray, ref_ns: np.ndarray, max_dt_ns: int) -> np.ndarray:
     """For each query stamp, the index of the nearest reference stamp within ``max_dt_ns``, else -1.
 

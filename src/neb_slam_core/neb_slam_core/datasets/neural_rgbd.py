@@ -24,26 +24,15 @@ from ..geometry.se3 import GL_TO_CV
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
 from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, read_matrix, register, warn_skipped)
+                   pair_by_number, read_matrix, read_number_rows, register, warn_skipped)
 
 DEPTH_SCALE = 1000.0
 
 
 def read_stacked_poses(path: Path) -> np.ndarray:
     """Read ``poses.txt``: 4x4 matrices stacked 4 rows each -> ``(N, 4, 4)`` float64 (may hold nan)."""
-    if not path.is_file():
-        raise DatasetError(path, "pose file not found (expected 4x4 camera-to-world matrices stacked, 4 rows each)")
-    rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            values = np.array(line.split(), dtype=np.float64)
-        except ValueError:
-            raise DatasetError(path, f"line {lineno}: expected 4 numbers, got {line.strip()!r}") from None
-        if values.size != 4:
-            raise DatasetError(path, f"line {lineno}: expected 4 numbers (one row of a 4x4), got {values.size}")
-        rows.append(values)
+    rows = [values for _, values in read_number_rows(
+        path, 4, "one row of a 4x4", "pose file not found (expected 4x4 camera-to-world matrices stacked, 4 rows each)")]
     if len(rows) % 4:
         raise DatasetError(path, f"{len(rows)} rows is not a whole number of 4x4 matrices (4 rows each)")
     return np.asarray(rows, dtype=np.float64).reshape(-1, 4, 4)

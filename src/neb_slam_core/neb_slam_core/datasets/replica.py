@@ -20,7 +20,7 @@ from ..errors import DatasetError
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
 from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, register)
+                   pair_by_number, read_number_rows, register)
 
 REPLICA_INTRINSICS = Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
 DEPTH_SCALE = 6553.5
@@ -31,20 +31,9 @@ DEPTH_PATTERN = r"depth(\d+)\.png"
 
 def read_replica_trajectory(path: Path) -> list[np.ndarray]:
     """Read ``traj.txt``: one row-major 4x4 camera-to-world per non-empty line -> list of ``(4, 4)`` float64."""
-    if not path.is_file():
-        raise DatasetError(path, "trajectory file not found (expected one row-major 4x4 camera-to-world, "
-                                 "16 numbers, per line)")
-    poses = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            values = np.array(line.split(), dtype=np.float64)
-        except ValueError:
-            raise DatasetError(path, f"line {lineno}: expected 16 numbers, got {line.strip()!r}") from None
-        if values.size != 16:
-            raise DatasetError(path, f"line {lineno}: expected 16 numbers (a row-major 4x4), got {values.size}")
-        poses.append(check_rigid_pose(values.reshape(4, 4), path, f"line {lineno}"))
+    rows = read_number_rows(path, 16, "a row-major 4x4", "trajectory file not found (expected one row-major 4x4 "
+                                                         "camera-to-world, 16 numbers, per line)")
+    poses = [check_rigid_pose(values.reshape(4, 4), path, f"line {lineno}") for lineno, values in rows]
     return poses
 
 

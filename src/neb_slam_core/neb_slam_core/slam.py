@@ -19,7 +19,7 @@ import torch
 
 from .config import SlamConfig
 from .geometry.rays import backproject_depth
-from .geometry.se3 import invert
+from .geometry.se3 import invert, orthonormalize
 from .io.trajectory import Trajectory
 from .mapping.keyframes import KeyframeStore
 from .mapping.mapper import Mapper
@@ -54,6 +54,7 @@ class Slam:
         self.T_world_first = np.eye(4) if T_world_first is None else np.array(T_world_first, dtype=np.float64)
         self._frames: list[_FramePose] = []
         self._residuals: list[float] = []
+        self._ok_streak = 0  # consecutive frames tracked (the first frame counts)
 
     # ------------------------------------------------------------------ state
 
@@ -90,12 +91,18 @@ class Slam:
             return self._initialise(frame, t_start)
 
         # predict (constant velocity) and track
+        # constant velocity from the last two frames, only when both were tracked: after a failure the
+        # velocity is unknown, and extrapolating an extrapolation runs away
         T_prev = self.pose_of(index - 1)
-        T_pred = T_prev @ invert(self.pose_of(index - 2)) @ T_prev if index >= 2 else T_prev
+        if index >= 2 and self._ok_streak >= 2:
+            T_pred = orthonormalize(T_prev @ invert(self.pose_of(index - 2)) @ T_prev)
+        else:
+            T_pred = T_prev
         t0 = time.perf_counter()
         tracked = self.tracker.track(self.block_map, frame, T_pred)
         timings.track_ms = 1e3 * (time.perf_counter() - t0)
         ok, reason = self._tracking_ok(tracked)
+        self._ok_streak = self._ok_streak + 1 if ok else 0
         T = tracked.T_world_cam if ok else T_pred
 
         # allocate (only from a trusted pose: a wrong one would put a block in the wrong place)
@@ -130,6 +137,7 @@ class Slam:
         alloc_ms = 1e3 * (time.perf_counter() - t0)
         self._add_keyframe(frame, T, 0)
         self._record(frame.stamp_ns, T)
+        self._ok_streak = 1
         t0 = time.perf_counter()
         rays = all_pixels(frame, device=self.block_map.device).to_world(torch.as_tensor(T, dtype=torch.float32))
         self.mapper.optimise_on_rays(rays, self.cfg.mapping.first_iterations)

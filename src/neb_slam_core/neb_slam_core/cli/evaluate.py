@@ -23,7 +23,6 @@ Examples:
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 HELP = "ATE / RPE and reconstruction metrics of a run, with plots"
@@ -72,85 +71,13 @@ def _resolve_paths(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
     return est, gt, out
 
 
-def merge_metrics(path: Path, new: dict) -> dict:
-    """Update the JSON object in ``path`` (created when absent) with ``new``; returns the merged object."""
-    from ..errors import DatasetError
-
-    merged: dict = {}
-    if path.is_file():
-        try:
-            merged = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise DatasetError(path, f"existing metrics file is not valid JSON ({exc}); fix or remove it") from None
-        if not isinstance(merged, dict):
-            raise DatasetError(path, "existing metrics file must hold a JSON object")
-    merged.update(new)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(merged, indent=2, sort_keys=True) + "\n")
-    return merged
-
-
 def _fmt(value: float | None, unit: str) -> str:
     return "n/a" if value is None else f"{value:.3f} {unit}"
 
 
-def trajectory_metrics(est, gt, *, max_dt_s: float = 0.02, align: bool = True, rpe_delta_s: float = 1.0,
-                       est_source: Path | None = None, gt_source: Path | None = None):
-    """ATE and RPE of trajectory ``est`` against ``gt`` (both :class:`~neb_slam_core.io.trajectory.Trajectory`).
-
-    Returns ``(metrics, ate)``: the JSON-ready figures this command writes (``ate_rmse_cm``, ...,
-    ``n_gt_poses``) and the :class:`~neb_slam_core.eval.trajectory_metrics.AteResult` (for plots and
-    mesh alignment). Raises :class:`DatasetError` when fewer than 3 poses associate.
-    """
-    from ..eval.trajectory_metrics import associate_trajectories, compute_ate, compute_rpe
-
-    pair = associate_trajectories(est, gt, max_dt_s, est_source=est_source, gt_source=gt_source)
-    ate = compute_ate(pair, align=align)
-    rpe = compute_rpe(pair, rpe_delta_s, "s")
-    rpe_frame = compute_rpe(pair, 1, "frames")
-
-    def cm(v: float | None) -> float | None:
-        return None if v is None else v * 100.0
-
-    metrics: dict = {
-        "ate_rmse_cm": ate.rmse_cm,
-        "ate_mean_cm": ate.mean_cm,
-        "ate_median_cm": ate.median_cm,
-        "ate_max_cm": ate.max_cm,
-        "rpe_trans_cm": cm(rpe.trans_rmse_m),
-        "rpe_rot_deg": rpe.rot_rmse_deg,
-        "rpe_delta_s": rpe_delta_s,
-        "rpe_frame_trans_cm": cm(rpe_frame.trans_rmse_m),
-        "rpe_frame_rot_deg": rpe_frame.rot_rmse_deg,
-        "n_poses": ate.n_matched,
-        "n_est_poses": ate.n_est,
-        "n_gt_poses": ate.n_gt,
-    }
-    return metrics, ate
-
-
-def recon_metrics(recon) -> dict:
-    """The JSON-ready figures of a :class:`~neb_slam_core.eval.recon.ReconResult`."""
-    return {
-        "accuracy_cm": recon.accuracy_cm,
-        "completion_cm": recon.completion_cm,
-        "completion_ratio_pct": recon.completion_ratio_pct,
-        "depth_l1_cm": recon.depth_l1_cm,
-        "completion_threshold_cm": recon.completion_threshold_cm,
-        "recon_culled": recon.culled,
-    }
-
-
-def write_trajectory_plots(ate, out_dir: Path) -> list[Path]:
-    """``trajectory.png`` and ``ate_over_time.png`` of ``ate`` in ``out_dir``; returns their paths."""
-    from ..eval.plots import plot_ate_over_time, plot_trajectory, save_figure
-
-    return [save_figure(plot_trajectory(ate), out_dir / "trajectory.png"),
-            save_figure(plot_ate_over_time(ate), out_dir / "ate_over_time.png")]
-
-
 def run(args: argparse.Namespace) -> int:
     from ..errors import DatasetError
+    from ..eval.report import merge_metrics, recon_metrics, trajectory_metrics, write_trajectory_plots
     from ..io.trajectory import read_tum_trajectory
 
     est_path, gt_path, out_dir = _resolve_paths(args)
@@ -201,6 +128,7 @@ def _evaluate_recon(args: argparse.Namespace, rec_path: Path, ate):
 
     from ..datasets.tum import read_intrinsics_json
     from ..errors import ConfigError, DatasetError
+    from ..eval.report import evaluate_mesh_files
 
     if args.n_points < 1 or args.depth_views < 0 or args.cull_stride < 1 or not args.threshold_cm > 0:
         raise ConfigError("--n-points and --cull-stride must be >= 1, --depth-views >= 0, --threshold-cm > 0")
@@ -218,32 +146,3 @@ def _evaluate_recon(args: argparse.Namespace, rec_path: Path, ate):
     return evaluate_mesh_files(rec_path, args.gt_mesh, T_gt_rec=ate.T_gt_est if args.align_mesh else None,
                                cull_poses=poses, intrinsics=intrinsics, n_points=args.n_points,
                                threshold_cm=args.threshold_cm, depth_views=args.depth_views, seed=args.seed)
-
-
-def evaluate_mesh_files(rec_path: Path, gt_mesh_path: Path, *, T_gt_rec=None, cull_poses=None, intrinsics=None,
-                        n_points: int = 200_000, threshold_cm: float = 5.0, depth_views: int = 1000, seed: int = 0):
-    """Reconstruction metrics of the mesh file ``rec_path`` against ``gt_mesh_path``.
-
-    Args:
-        T_gt_rec: ``(4, 4)`` map of the reconstruction into the ground truth's frame (None: already there).
-        cull_poses: ``(m, 4, 4)`` ground-truth camera poses to cull both meshes to (with ``intrinsics``);
-            None compares the whole meshes.
-        intrinsics: the recording camera (:class:`~neb_slam_core.types.Intrinsics`).
-
-    Returns:
-        :class:`~neb_slam_core.eval.recon.ReconResult`.
-    """
-    from dataclasses import replace
-
-    from ..eval.recon import DepthL1Config, ReconConfig, evaluate_reconstruction, load_mesh
-
-    rec_mesh = load_mesh(rec_path)
-    gt_mesh = load_mesh(gt_mesh_path)
-    if T_gt_rec is not None:
-        rec_mesh = rec_mesh.copy()
-        rec_mesh.apply_transform(T_gt_rec)
-    config = ReconConfig(n_points=n_points, completion_threshold_m=threshold_cm / 100.0, seed=seed,
-                         depth_l1=replace(DepthL1Config(), n_views=depth_views))
-    if cull_poses is None or intrinsics is None:
-        cull_poses = intrinsics = None
-    return evaluate_reconstruction(rec_mesh, gt_mesh, config, cull_poses, intrinsics)

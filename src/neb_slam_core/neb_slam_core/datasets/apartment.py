@@ -21,7 +21,7 @@ from ..errors import DatasetError
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
 from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, register)
+                   pair_by_number, poses_by_image_order, register)
 
 APARTMENT_INTRINSICS = Intrinsics(607.4694213867188, 607.4534912109375, 636.9967041015625, 369.2689514160156,
                                   1280, 720)
@@ -82,10 +82,7 @@ class ApartmentDataset(FrameListDataset):
             raise DatasetError(self.root / "color", "no colour images named N.jpg")
         traj_path = self.root / TRAJECTORY_FILE
         poses = read_trajectory_log(traj_path)
-        if len(poses) != len(rgb_files):
-            raise DatasetError(traj_path, f"{len(poses)} poses for {len(rgb_files)} colour images in color/; "
-                                          "expected one record per colour image")
-        pose_of = dict(zip(rgb_files, poses))
+        pose_of = poses_by_image_order(poses, rgb_files, traj_path, "color")
         self.frames = [FrameFiles(rgb_files[n], depth_files[n], fps_stamp_ns(n, fps), pose_of[n])
                        for n in pair_by_number(self.root, rgb_files, depth_files)]
 

@@ -348,3 +348,14 @@ def pair_by_number(root: Path, rgb_files: dict[int, Path], depth_files: dict[int
     keep = [n for n in rgb_files if n in depth_files]
     warn_skipped(root, len(rgb_files) - len(keep), len(rgb_files), "colour images with no depth image of the same number")
     return keep
+
+
+def poses_by_image_order(poses: Sequence, rgb_files: dict[int, Path], pose_path: Path, folder: str) -> dict:
+    """Give the k-th pose of ``pose_path`` to the k-th colour image (in number order): ``{number: pose}``.
+
+    Raises :class:`DatasetError` naming ``pose_path`` when the counts differ.
+    """
+    if len(poses) != len(rgb_files):
+        raise DatasetError(pose_path, f"{len(poses)} poses for {len(rgb_files)} colour images in {folder}/; "
+                                      "expected one pose per colour image")
+    return dict(zip(rgb_files, poses))

@@ -24,7 +24,7 @@ from ..geometry.se3 import GL_TO_CV
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
 from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, read_matrix, read_number_rows, register, warn_skipped)
+                   pair_by_number, poses_by_image_order, read_matrix, read_number_rows, register, warn_skipped)
 
 DEPTH_SCALE = 1000.0
 
@@ -62,10 +62,7 @@ class NeuralRgbdDataset(FrameListDataset):
             raise DatasetError(self.root / "images", "no colour images named imgN.png")
         poses_path = self.root / "poses.txt"
         poses_gl = read_stacked_poses(poses_path)
-        if len(poses_gl) != len(rgb_files):
-            raise DatasetError(poses_path, f"{len(poses_gl)} poses for {len(rgb_files)} colour images in images/; "
-                                           "expected one 4x4 per colour image")
-        pose_of = dict(zip(rgb_files, poses_gl))
+        pose_of = poses_by_image_order(poses_gl, rgb_files, poses_path, "images")
         with_depth = pair_by_number(self.root, rgb_files, depth_files)
 
         self.frames = []

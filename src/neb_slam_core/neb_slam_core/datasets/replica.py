@@ -20,7 +20,7 @@ from ..errors import DatasetError
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
 from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, read_number_rows, register)
+                   pair_by_number, poses_by_image_order, read_number_rows, register)
 
 REPLICA_INTRINSICS = Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
 DEPTH_SCALE = 6553.5
@@ -60,10 +60,7 @@ class ReplicaDataset(FrameListDataset):
             raise DatasetError(results, "no colour images named frameNNNNNN.jpg")
         traj_path = self.root / TRAJ_FILE
         poses = read_replica_trajectory(traj_path)
-        if len(poses) != len(rgb_files):
-            raise DatasetError(traj_path, f"{len(poses)} poses for {len(rgb_files)} colour images in {results.name}/; "
-                                          "expected one pose per colour image")
-        pose_of = dict(zip(rgb_files, poses))
+        pose_of = poses_by_image_order(poses, rgb_files, traj_path, results.name)
         self.frames = [FrameFiles(rgb_files[n], depth_files[n], fps_stamp_ns(n, fps), pose_of[n])
                        for n in pair_by_number(self.root, rgb_files, depth_files)]
 

@@ -33,7 +33,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -174,37 +174,29 @@ class RunDirectory:
     def file(self, name: str) -> Path:
         return self.path / name
 
-    def _write_text(self, name: str, text: str) -> Path:
+    def _write_atomic(self, name: str, write: Callable[[Path], object]) -> Path:
+        """Write file ``name`` through ``write(tmp_path)`` then rename, so a crash never leaves half a file."""
         path = self.file(name)
         tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(text)
+        write(tmp)
         tmp.replace(path)
         return path
+
+    def _write_text(self, name: str, text: str) -> Path:
+        return self._write_atomic(name, lambda tmp: tmp.write_text(text))
 
     def write_config(self, cfg: SlamConfig) -> Path:
         from ..config_io import dump_config
 
-        path = self.file(CONFIG_FILE)
-        tmp = path.with_name(path.name + ".tmp")
-        dump_config(cfg, tmp)
-        tmp.replace(path)
-        return path
+        return self._write_atomic(CONFIG_FILE, lambda tmp: dump_config(cfg, tmp))
 
     def write_intrinsics(self, intrinsics: Intrinsics) -> Path:
         from ..datasets.tum import write_intrinsics_json
 
-        path = self.file(INTRINSICS_FILE)
-        tmp = path.with_name(path.name + ".tmp")
-        write_intrinsics_json(tmp, intrinsics)
-        tmp.replace(path)
-        return path
+        return self._write_atomic(INTRINSICS_FILE, lambda tmp: write_intrinsics_json(tmp, intrinsics))
 
     def write_trajectory(self, traj: Trajectory, name: str = TRAJECTORY_FILE, header: str | None = None) -> Path:
-        path = self.file(name)
-        tmp = path.with_name(path.name + ".tmp")
-        write_tum_trajectory(tmp, traj, header)
-        tmp.replace(path)
-        return path
+        return self._write_atomic(name, lambda tmp: write_tum_trajectory(tmp, traj, header))
 
     def write_timings(self, frames: list[FrameLog]) -> Path:
         """timings.csv: one row per finished frame (columns :data:`TIMINGS_COLUMNS`)."""
@@ -232,11 +224,7 @@ class RunDirectory:
     def write_mesh(self, mesh) -> Path:
         from ..mesh import save_mesh
 
-        path = self.file(MESH_FILE)
-        tmp = path.with_name(path.name + ".tmp")
-        save_mesh(mesh, tmp)
-        tmp.replace(path)
-        return path
+        return self._write_atomic(MESH_FILE, lambda tmp: save_mesh(mesh, tmp))
 
 
 def read_timings(path: str | Path) -> list[dict[str, str]]:
@@ -326,7 +314,7 @@ def write_run(run_dir: RunDirectory, slam: "Slam", run_log: RunLog, options: Run
     Steps that cannot be done (ATE with fewer than 3 ground-truth poses, a mesh from an empty map) are
     skipped with a warning and listed in ``RunSummary.skipped``.
     """
-    from ..cli.evaluate import trajectory_metrics, write_trajectory_plots
+    from ..eval.report import trajectory_metrics, write_trajectory_plots
     from ..eval.plots import plot_block_allocation, save_figure
 
     if status not in STATUSES:
@@ -390,7 +378,7 @@ def write_run(run_dir: RunDirectory, slam: "Slam", run_log: RunLog, options: Run
 def _recon_metrics(run_dir: RunDirectory, gt: Trajectory, ate, options: RunOutputOptions, skip) -> dict:
     """Accuracy / completion (/ Depth L1) of the run's mesh against ``options.gt_mesh``, culled to the
     ground-truth camera poses (every ``cull_stride``-th) with the run's intrinsics."""
-    from ..cli.evaluate import evaluate_mesh_files, recon_metrics
+    from ..eval.report import evaluate_mesh_files, recon_metrics
     from ..datasets.tum import read_intrinsics_json
 
     cull_poses = intrinsics = T_gt_rec = None

@@ -15,7 +15,7 @@ import torch
 from ..config import RenderConfig
 from ..geometry.rays import backproject_depth
 from ..render.rays import RayBatch, all_pixels
-from ..render.renderer import objective
+from ..render.renderer import objective, render_rays
 from ..scene.block_map import BlockMap
 from ..types import RgbdFrame
 from .optimizer import MapOptimizer
@@ -57,9 +57,7 @@ class FrameRayPool:
         self.rays = RayBatch.cat(batches)
 
     def draw(self, n: int, generator: torch.Generator) -> RayBatch:
-        idx = torch.randint(len(self.rays), (n,), generator=generator, device=self.rays.origins.device)
-        r = self.rays
-        return RayBatch(r.origins[idx], r.dirs[idx], r.rgb[idx], r.depth_m[idx])
+        return self.rays[torch.randint(len(self.rays), (n,), generator=generator, device=self.rays.origins.device)]
 
 
 def fit_map(block_map: BlockMap, pool: FrameRayPool, render_cfg: RenderConfig, fit_cfg: FitConfig,
@@ -91,16 +89,13 @@ def render_depth_image(block_map: BlockMap, frame: RgbdFrame, T_world_cam: np.nd
     Uses deterministic samples (bin centres) and the measured depth for the surface samples, as
     evaluation renders do in neural RGB-D SLAM.
     """
-    from ..render.renderer import render_rays
-
     dev = block_map.device
     px = all_pixels(frame, device=dev)
     rays = px.to_world(torch.as_tensor(T_world_cam, dtype=torch.float32, device=dev))
     ids = block_map.blocks_in_frustum(T_world_cam, frame.intrinsics, render_cfg.sampling.near_m, render_cfg.sampling.far_m)
     depth, rgb = [], []
     for s in range(0, len(rays), chunk):
-        sub = RayBatch(rays.origins[s:s + chunk], rays.dirs[s:s + chunk], rays.rgb[s:s + chunk], rays.depth_m[s:s + chunk])
-        out = render_rays(block_map, sub, render_cfg, ids, stratified=False)
+        out = render_rays(block_map, rays[s:s + chunk], render_cfg, ids, stratified=False)
         depth.append(torch.where(out.ray_valid, out.depth_m, torch.zeros_like(out.depth_m)))
         rgb.append(out.rgb)
     h, w = frame.depth_m.shape

@@ -46,8 +46,7 @@ class Mapper:
         """Map-only optimisation on a fixed pool of world rays (the first frame's initialisation)."""
         loss_value = float("nan")
         for _ in range(iterations):
-            idx = torch.randint(len(rays), (self.cfg.n_rays,), generator=self.generator)
-            batch = RayBatch(rays.origins[idx], rays.dirs[idx], rays.rgb[idx], rays.depth_m[idx])
+            batch = rays[torch.randint(len(rays), (self.cfg.n_rays,), generator=self.generator)]
             self.map_opt.zero_grad()
             loss, _ = objective(self.block_map, batch, self.render_cfg, None, generator=self.generator)
             loss.total.backward()

@@ -30,6 +30,10 @@ class RayBatch:
     def __len__(self) -> int:
         return self.origins.shape[0]
 
+    def __getitem__(self, index) -> "RayBatch":
+        """The rays selected by ``index`` (a slice, an index tensor or a mask)."""
+        return RayBatch(self.origins[index], self.dirs[index], self.rgb[index], self.depth_m[index])
+
     @staticmethod
     def cat(batches: list["RayBatch"]) -> "RayBatch":
         return RayBatch(*(torch.cat([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "rgb", "depth_m")))

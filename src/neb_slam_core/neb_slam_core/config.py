@@ -223,6 +223,11 @@ class TrackingConfig:
     ``failure_ratio``: a frame whose final depth residual exceeds this multiple of the running median,
     or that has fewer than ``min_valid_rays`` rays inside blocks, is reported as a tracking failure and
     keeps the constant-velocity prediction.
+
+    ``method``: ``adam`` (the paper: ``iterations`` steps of Adam at ``lr``) or ``gauss_newton``
+    (Levenberg-Marquardt on the same objective, at most ``iterations`` steps, no learning rate; it starts
+    with damping ``gn_damping`` times the Gauss-Newton matrix' diagonal and stops once a step moves
+    the camera, and points 1 m in front of it, by less than ``gn_stop_step_m``).
     """
 
     n_rays: int = 1024
@@ -231,6 +236,9 @@ class TrackingConfig:
     border_px: int = 0
     failure_ratio: float = 8.0
     min_valid_rays: int = 64
+    method: str = "adam"
+    gn_damping: float = 1e-4
+    gn_stop_step_m: float = 1e-4
 
 
 @dataclass(frozen=True)

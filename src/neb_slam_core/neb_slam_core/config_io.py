@@ -48,6 +48,7 @@ PRESET_FOLDER = "configs"
 #: hash-grid backends (the same tuple as ``scene.hash_grid.BACKENDS``; kept here so that loading a
 #: configuration does not import torch; a test checks that the two agree)
 GRID_BACKENDS = ("auto", "fast", "reference")
+TRACKING_METHODS = ("adam", "gauss_newton")
 
 _PRESET_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]*")
 _DOTTED_KEY = re.compile(r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*")
@@ -404,6 +405,9 @@ RULES: dict[str, Any] = {
     "tracking.border_px": _COUNT,
     "tracking.failure_ratio": _Num(1.0),
     "tracking.min_valid_rays": _COUNT,
+    "tracking.method": _Choice(TRACKING_METHODS),
+    "tracking.gn_damping": _NON_NEGATIVE,
+    "tracking.gn_stop_step_m": _NON_NEGATIVE,
     "keyframes.every": _POSITIVE_INT,
     "keyframes.pixel_fraction": _Num(0.0, 1.0, lo_open=True, hi_open=False),
     "mapping.every": _POSITIVE_INT,

@@ -19,6 +19,7 @@ import torch
 
 from .config import SlamConfig
 from .geometry.rays import backproject_depth
+from .geometry.rectify import Rectifier
 from .geometry.se3 import invert, orthonormalize
 from .io.trajectory import Trajectory
 from .mapping.keyframes import KeyframeStore
@@ -55,6 +56,7 @@ class Slam:
         self._frames: list[_FramePose] = []
         self._residuals: list[float] = []
         self._ok_streak = 0  # consecutive frames tracked (the first frame counts)
+        self._rectify = Rectifier()
 
     # ------------------------------------------------------------------ state
 
@@ -84,7 +86,10 @@ class Slam:
     # ------------------------------------------------------------------ the loop
 
     def process(self, frame: RgbdFrame) -> StepResult:
+        """Track ``frame`` (undistorted first when it carries lens distortion), then allocate, keyframe
+        and map as the paper's loop does."""
         t_start = time.perf_counter()
+        frame = self._rectify(frame)
         index = self.n_frames
         timings = StepTimings()
         if index == 0:

@@ -48,6 +48,9 @@ class RgbdFrame:
         stamp_ns: capture time in integer nanoseconds.
         T_world_cam: optional ground-truth camera-to-world pose, ``(4, 4)`` float64.
         index: position of the frame in its source sequence.
+        extras: loader-specific data; ``extras["distortion"]`` holds the lens distortion of both images
+            as OpenCV/ROS ``plumb_bob`` coefficients (k1, k2, p1, p2, k3) when the images are not
+            rectified (TUM's freiburg cameras); the engine rectifies such frames on input.
     """
 
     rgb: np.ndarray

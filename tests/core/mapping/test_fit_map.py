@@ -9,32 +9,23 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 import trimesh
 
-from neb_slam_core.config import BlockConfig, MeshConfig, RenderConfig, SamplingConfig
-from neb_slam_core.datasets import open_dataset
+from neb_slam_core.config import MeshConfig, RenderConfig, SamplingConfig
 from neb_slam_core.eval.recon import DepthL1Config, ReconConfig, evaluate_reconstruction
 from neb_slam_core.eval.seams import seam_step_errors
 from neb_slam_core.geometry.rays import backproject_depth
-from neb_slam_core.mapping.fit import FitConfig, FrameRayPool, allocate_blocks, fit_map, render_depth_image
+from neb_slam_core.mapping.fit import render_depth_image
 from neb_slam_core.mesh import extract_mesh
-from neb_slam_core.scene.block_map import BlockMap
 
 RENDER = RenderConfig(truncation_m=0.05, sampling=SamplingConfig(far_m=5.0))
 
 
 @pytest.fixture(scope="module")
-def fitted(small_scene):
-    torch.manual_seed(0)
-    ds = open_dataset(small_scene)
-    frames = [ds[i] for i in range(len(ds))]
-    train, held_out = frames[::2], frames[1::6]
-    poses = [f.T_world_cam for f in train]
-    block_map = BlockMap(BlockConfig(), seed=0)
-    allocate_blocks(block_map, train, poses, RENDER.sampling.near_m, RENDER.sampling.far_m, np.random.default_rng(0))
-    history = fit_map(block_map, FrameRayPool(train, poses), RENDER, FitConfig(iterations=200, rays_per_iteration=2048))
-    return block_map, train, held_out, history, small_scene
+def fitted(fitted_small_map):
+    f = fitted_small_map
+    assert f.render == RENDER
+    return f.block_map, f.train, f.held_out, f.history, f.scene
 
 
 def test_loss_decreases_and_map_spans_blocks(fitted):

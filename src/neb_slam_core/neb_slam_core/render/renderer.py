@@ -14,12 +14,14 @@ from .volume import RenderOutput, composite, sdf_weights
 
 def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
                 stratified: bool = True, generator: torch.Generator | None = None,
-                with_colour: bool = True) -> RenderOutput:
+                with_colour: bool = True, z: torch.Tensor | None = None) -> RenderOutput:
     """Sample, query the blocks ``block_ids`` (all when None) and composite ``R`` rays.
 
-    Samples outside every consulted block are discarded (weight 0), as the paper prescribes.
+    Samples outside every consulted block are discarded (weight 0), as the paper prescribes. ``z``
+    (R, S) gives the sample depths instead of drawing them.
     """
-    z = sample_depths(rays.depth_m, cfg.sampling, stratified=stratified, generator=generator)  # (R, S)
+    if z is None:
+        z = sample_depths(rays.depth_m, cfg.sampling, stratified=stratified, generator=generator)  # (R, S)
     r, s = z.shape
     points = rays.origins[:, None, :] + z[..., None] * rays.dirs[:, None, :]  # (R, S, 3)
     sample = block_map.query(points.reshape(-1, 3), block_ids, with_colour=with_colour)
@@ -53,9 +55,11 @@ def smoothness_term(block_map: BlockMap, cfg: RenderConfig, block_ids: list[int]
 
 
 def objective(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
-              generator: torch.Generator | None = None, with_smoothness: bool = True) -> tuple[LossTerms, RenderOutput]:
-    """Render ``rays`` and evaluate the paper's weighted objective on them."""
-    out = render_rays(block_map, rays, cfg, block_ids, stratified=True, generator=generator)
+              generator: torch.Generator | None = None, with_smoothness: bool = True,
+              z: torch.Tensor | None = None) -> tuple[LossTerms, RenderOutput]:
+    """Render ``rays`` and evaluate the paper's weighted objective on them (at sample depths ``z`` when
+    given, else stratified ones)."""
+    out = render_rays(block_map, rays, cfg, block_ids, stratified=True, generator=generator, z=z)
     l_c = colour_loss(out.rgb, rays.rgb, out.ray_valid)
     l_d = depth_loss(out.depth_m, rays.depth_m, out.ray_valid)
     l_sdf, l_fs = sdf_losses(out.sdf, out.z, rays.depth_m, out.sample_valid, cfg.truncation_m)

@@ -14,11 +14,13 @@ import torch
 
 from ..config import RenderConfig, TrackingConfig
 from ..geometry.lie import PoseSet
-from ..render.rays import sample_pixels
+from ..render.rays import PixelSamples, sample_pixels
 from ..render.renderer import objective
+from ..render.sampling import sample_depths
 from ..scene.block_map import BlockMap
 from ..scene.freeze import frozen
 from ..types import RgbdFrame
+from .gauss_newton import apply_step, evaluate_pose, normal_equations
 
 
 @dataclass
@@ -41,7 +43,7 @@ class TrackingResult:
 
 
 class Tracker:
-    """Pose optimisation against a fixed map."""
+    """Pose optimisation against a fixed map, by Adam (the paper) or Levenberg-Marquardt."""
 
     def __init__(self, cfg: TrackingConfig, render_cfg: RenderConfig, seed: int = 0):
         self.cfg = cfg
@@ -51,30 +53,74 @@ class Tracker:
 
     def track(self, block_map: BlockMap, frame: RgbdFrame, T_init: np.ndarray) -> TrackingResult:
         dev = block_map.device
+        T_init = np.array(T_init, dtype=np.float64)
         px = sample_pixels(frame, self.cfg.n_rays, self.rng, valid_depth_only=True, border=self.cfg.border_px,
                            device=dev)
         if len(px) == 0:
-            return TrackingResult(np.array(T_init, dtype=np.float64), float("inf"), float("inf"), 0, 0)
+            return TrackingResult(T_init, float("inf"), float("inf"), 0, 0)
         s = self.render_cfg.sampling
         ids = block_map.blocks_in_frustum(T_init, frame.intrinsics, s.near_m, s.far_m)
-        pose = PoseSet(T_init).to(dev)
-        opt = torch.optim.Adam([pose.delta], lr=self.cfg.lr)
-        best = (float("inf"), np.array(T_init, dtype=np.float64), float("inf"), 0)
         with frozen(block_map):
-            for _ in range(self.cfg.iterations):
-                rays = px.to_world(pose.matrices()[0])
-                loss, out = objective(block_map, rays, self.render_cfg, ids, generator=self.generator,
-                                      with_smoothness=False)
-                n_valid = int(out.ray_valid.sum())
-                value = float(loss.total.detach())
-                if n_valid >= self.cfg.min_valid_rays and value < best[0]:
-                    ok = out.ray_valid & (rays.depth_m > 0)
-                    resid = float((out.depth_m - rays.depth_m)[ok].abs().mean().detach()) if ok.any() else float("inf")
-                    best = (value, pose.numpy()[0], resid, n_valid)
-                opt.zero_grad(set_to_none=True)
-                loss.total.backward()
-                opt.step()
+            if self.cfg.method == "gauss_newton":
+                return self._levenberg_marquardt(block_map, px, T_init, ids)
+            return self._adam(block_map, px, T_init, ids)
+
+    def _adam(self, block_map: BlockMap, px: PixelSamples, T_init: np.ndarray, ids: list[int]) -> TrackingResult:
+        """The paper's tracking: ``iterations`` Adam steps, fresh stratified samples each; the pose with
+        the lowest loss seen is kept."""
+        pose = PoseSet(T_init).to(block_map.device)
+        opt = torch.optim.Adam([pose.delta], lr=self.cfg.lr)
+        best = (float("inf"), T_init, float("inf"), 0)
+        for _ in range(self.cfg.iterations):
+            rays = px.to_world(pose.matrices()[0])
+            loss, out = objective(block_map, rays, self.render_cfg, ids, generator=self.generator,
+                                  with_smoothness=False)
+            n_valid = int(out.ray_valid.sum())
+            value = float(loss.total.detach())
+            if n_valid >= self.cfg.min_valid_rays and value < best[0]:
+                ok = out.ray_valid & (rays.depth_m > 0)
+                resid = float((out.depth_m - rays.depth_m)[ok].abs().mean().detach()) if ok.any() else float("inf")
+                best = (value, pose.numpy()[0], resid, n_valid)
+            opt.zero_grad(set_to_none=True)
+            loss.total.backward()
+            opt.step()
         value, T, resid, n_valid = best
         if not np.isfinite(value):  # never enough valid rays
             n_valid = int(out.ray_valid.sum())
         return TrackingResult(T, value, resid, n_valid, self.cfg.iterations)
+
+    def _levenberg_marquardt(self, block_map: BlockMap, px: PixelSamples, T_init: np.ndarray,
+                             ids: list[int]) -> TrackingResult:
+        """Damped Gauss-Newton on the same objective with one fixed set of stratified samples (so the
+        objective is a deterministic function of the pose and each step is accepted only if it lowers
+        it). A rejected step costs one evaluation; an accepted one also its Jacobian."""
+        c = self.cfg
+        tr = self.render_cfg.truncation_m
+        z = sample_depths(px.depth_m, self.render_cfg.sampling, stratified=True, generator=self.generator)
+        T = T_init
+        ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids)
+        if ev.n_valid_rays < c.min_valid_rays:
+            return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, 0)
+        H, g = normal_equations(ev, block_map, ids, tr)
+        damping = c.gn_damping
+        steps = 0
+        for steps in range(1, c.iterations + 1):
+            diag = np.maximum(np.diag(H), 1e-12 * max(float(np.diag(H).max()), 1e-30))
+            try:
+                step = -np.linalg.solve(H + damping * np.diag(diag), g)
+            except np.linalg.LinAlgError:
+                break
+            T_new = apply_step(T, step)
+            new = evaluate_pose(block_map, px, T_new, z, self.render_cfg, ids)
+            accepted = new.n_valid_rays >= c.min_valid_rays and new.cost < ev.cost
+            if accepted:
+                T, ev = T_new, new
+                damping = max(damping / 3.0, 1e-7)
+            else:
+                damping *= 8.0
+            # a step of (omega, dt) moves the camera by |dt| and points 1 m ahead by about |omega| m more
+            if np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) < c.gn_stop_step_m:
+                break
+            if accepted and steps < c.iterations:
+                H, g = normal_equations(ev, block_map, ids, tr)
+        return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, steps)

@@ -1,0 +1,107 @@
+"""End-to-end SLAM accuracy and speed: runs ``neb-slam run`` on a benchmark sequence and prints its figures.
+
+Sequences:
+
+- ``tum``: the 300 TUM fr1_xyz frames in ``../shared/data/tum_fr1_xyz_300`` (``NEB_SLAM_SHARED_DATA``
+  overrides the folder's parent), config ``tum``. Figures: ATE RMSE, seconds per frame (engine,
+  tracking, mapping).
+- ``large``: the ``large`` synthetic preset (six rooms, 320x240, 600 frames, no noise; generated once
+  under ``.cache/scenes/``), config ``synthetic``. Figures: ATE RMSE, accuracy, completion, completion
+  ratio (5 cm) against the scene's mesh, blocks and parameter MB (checked against blocks x per-block
+  size + decoders).
+- ``small``: the ``small`` synthetic preset (60 frames, 96x72), config ``synthetic``; a quick check.
+
+The run directory (``--out``, default ``runs/bench-<sequence>``) keeps everything ``neb-slam run``
+writes (trajectory, plots, mesh, metrics.json). Extra arguments after ``--`` go to ``neb-slam run``.
+
+Examples::
+
+    .venv/bin/python benchmarks/slam.py tum --json tum.json
+    .venv/bin/python benchmarks/slam.py large --json large.json
+    .venv/bin/python benchmarks/slam.py tum --frames 100 -- --set tracking.iterations=4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from neb_slam_core.config_io import load_config
+from neb_slam_core.scene.block_map import BlockMap
+from neb_slam_core.synth.generate import generate
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("NEB_SLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
+SEQUENCES = {"tum": "tum", "large": "synthetic", "small": "synthetic"}
+
+
+def source_of(sequence: str) -> Path:
+    if sequence == "tum":
+        path = SHARED_DATA / "tum_fr1_xyz_300"
+        if not (path / "rgb.txt").is_file():
+            sys.exit(f"TUM data not found at {path} (set NEB_SLAM_SHARED_DATA to the folder holding tum_fr1_xyz_300)")
+        return path
+    return generate(sequence, REPO / ".cache" / "scenes" / sequence, progress=True)
+
+
+def main() -> None:
+    argv = sys.argv[1:]
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    argv = argv[:argv.index("--")] if "--" in argv else argv
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("sequence", choices=sorted(SEQUENCES))
+    p.add_argument("--config", default=None, help="config preset or file (default: tum / synthetic)")
+    p.add_argument("--frames", type=int, default=None, help="process only the first N frames")
+    p.add_argument("--out", type=Path, default=None, help="run directory (default runs/bench-<sequence>)")
+    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    args = p.parse_args(argv)
+
+    source = source_of(args.sequence)
+    config = args.config or SEQUENCES[args.sequence]
+    out = args.out or REPO / "runs" / f"bench-{args.sequence}"
+    cmd = [sys.executable, "-m", "neb_slam_core.cli.main", "run", str(source), "--config", config, "--out", str(out)]
+    if args.frames:
+        cmd += ["--frames", str(args.frames)]
+    cmd += extra
+    load_before = os.getloadavg()[0]
+    subprocess.run(cmd, check=True)
+    metrics = json.loads((out / "metrics.json").read_text())
+
+    cfg = load_config(config)
+    empty = BlockMap(cfg.block, cfg.one_blob, cfg.decoder, grid_backend="reference")
+    decoder_mb = empty.param_mb()
+    empty.add_block([0.0, 0.0, 0.0])
+    block_mb = empty.param_mb() - decoder_mb
+    n_blocks = metrics["n_blocks"]
+    figures = {
+        "sequence": args.sequence,
+        "config": config,
+        "frames": metrics.get("n_frames"),
+        "ate_rmse_cm": metrics.get("ate_rmse_cm"),
+        "s_per_frame": metrics.get("s_per_frame"),
+        "track_s_per_frame": round(metrics["track_ms_mean"] / 1e3, 3),
+        "map_s_per_frame": round(metrics["map_ms_mean"] / 1e3, 3),
+        "n_blocks": n_blocks,
+        "param_mb": metrics.get("param_mb"),
+        "param_mb_expected": round(n_blocks * block_mb + decoder_mb, 3),
+        "block_mb": round(block_mb, 3),
+        "decoder_mb": round(decoder_mb, 3),
+        "n_tracking_failures": metrics.get("n_tracking_failures"),
+        "load_average_before": round(load_before, 2),
+        "cpus": os.cpu_count(),
+        "run_dir": str(out),
+    }
+    for key in ("accuracy_cm", "completion_cm", "completion_ratio_pct", "depth_l1_cm"):
+        if key in metrics:
+            figures[key] = metrics[key]
+    print(json.dumps(figures, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -220,14 +220,18 @@ def config_from_dict(cls, data: dict, where: str = "", sources: dict[str, str] |
 class TrackingConfig:
     """Pose optimisation by rendering (paper: N_t = 1024 rays, 10 iterations, lr 1e-3; TUM 1e-2).
 
-    ``failure_ratio``: a frame whose final depth residual exceeds this multiple of the running median,
-    or that has fewer than ``min_valid_rays`` rays inside blocks, is reported as a tracking failure and
-    keeps the constant-velocity prediction.
+    ``failure_ratio``: a frame whose final depth residual (the median over its rays) exceeds this
+    multiple of the running median and ``failure_min_residual_m``, or that has fewer than
+    ``min_valid_rays`` rays inside blocks, is reported as a tracking failure and keeps the
+    constant-velocity prediction. The absolute floor keeps noise-free data (sub-millimetre residuals)
+    from calling a 1-2 cm inaccuracy a failure: a failed frame adds nothing to the map, so false alarms
+    starve it.
 
-    ``method``: ``adam`` (the paper: ``iterations`` steps of Adam at ``lr``) or ``gauss_newton``
-    (Levenberg-Marquardt on the same objective, at most ``iterations`` steps, no learning rate; it starts
-    with damping ``gn_damping`` times the Gauss-Newton matrix' diagonal and stops once a step moves
-    the camera, and points 1 m in front of it, by less than ``gn_stop_step_m``).
+    ``method``: ``gauss_newton`` (ours: Levenberg-Marquardt on the paper's objective, at most
+    ``iterations`` steps, no learning rate; it starts with damping ``gn_damping`` times the Gauss-Newton
+    matrix' diagonal and stops once a step moves the camera, and points 1 m in front of it, by less
+    than ``gn_stop_step_m``) or ``adam`` (the paper: ``iterations`` Adam steps at ``lr``). On TUM fr1_xyz
+    Gauss-Newton takes 6 steps on average to the pose that Adam approaches in 40 or more.
     """
 
     n_rays: int = 1024
@@ -235,10 +239,11 @@ class TrackingConfig:
     lr: float = 1e-3
     border_px: int = 0
     failure_ratio: float = 8.0
+    failure_min_residual_m: float = 0.03
     min_valid_rays: int = 64
-    method: str = "adam"
+    method: str = "gauss_newton"
     gn_damping: float = 1e-4
-    gn_stop_step_m: float = 1e-4
+    gn_stop_step_m: float = 2e-4
 
 
 @dataclass(frozen=True)

@@ -404,6 +404,7 @@ RULES: dict[str, Any] = {
     "tracking.lr": _POSITIVE,
     "tracking.border_px": _COUNT,
     "tracking.failure_ratio": _Num(1.0),
+    "tracking.failure_min_residual_m": _NON_NEGATIVE,
     "tracking.min_valid_rays": _COUNT,
     "tracking.method": _Choice(TRACKING_METHODS),
     "tracking.gn_damping": _NON_NEGATIVE,

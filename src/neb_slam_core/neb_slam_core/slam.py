@@ -159,9 +159,11 @@ class Slam:
             return False, "no valid depth residual"
         if len(self._residuals) >= 5:
             level = float(np.median(self._residuals[-30:]))
-            if tracked.depth_residual_m > c.failure_ratio * max(level, 1e-3):
-                return False, (f"depth residual {100 * tracked.depth_residual_m:.1f} cm is above "
-                               f"{c.failure_ratio:g} x its running level {100 * level:.1f} cm")
+            limit = max(c.failure_ratio * level, c.failure_min_residual_m)
+            if tracked.depth_residual_m > limit:
+                return False, (f"depth residual {100 * tracked.depth_residual_m:.1f} cm is above {100 * limit:.1f} cm "
+                               f"({c.failure_ratio:g} x its running level {100 * level:.2f} cm, at least "
+                               f"{100 * c.failure_min_residual_m:.1f} cm)")
         self._residuals.append(tracked.depth_residual_m)
         return True, ""
 

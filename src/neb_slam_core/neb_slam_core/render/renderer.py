@@ -9,7 +9,7 @@ from ..scene.block_map import BlockMap
 from .losses import LossTerms, colour_loss, combine, depth_loss, sdf_losses, smoothness_loss
 from .rays import RayBatch
 from .sampling import sample_depths
-from .volume import RenderOutput, composite, sdf_weights
+from .volume import RenderOutput, composite, observed_rays, sdf_weights
 
 
 def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
@@ -29,7 +29,8 @@ def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_id
     valid = sample.valid.reshape(r, s)
     w = sdf_weights(sdf, z, valid, cfg.truncation_m)
     depth, rgb = composite(w, z, sample.rgb.reshape(r, s, 3))
-    return RenderOutput(depth, rgb, z, sdf, valid, valid.any(dim=-1))
+    return RenderOutput(depth, rgb, z, sdf, valid, valid.any(dim=-1),
+                        observed_rays(valid, z, rays.depth_m, cfg.truncation_m))
 
 
 def smoothness_term(block_map: BlockMap, cfg: RenderConfig, block_ids: list[int] | None,
@@ -60,8 +61,8 @@ def objective(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids:
     """Render ``rays`` and evaluate the paper's weighted objective on them (at sample depths ``z`` when
     given, else stratified ones)."""
     out = render_rays(block_map, rays, cfg, block_ids, stratified=True, generator=generator, z=z)
-    l_c = colour_loss(out.rgb, rays.rgb, out.ray_valid)
-    l_d = depth_loss(out.depth_m, rays.depth_m, out.ray_valid)
+    l_c = colour_loss(out.rgb, rays.rgb, out.observed)
+    l_d = depth_loss(out.depth_m, rays.depth_m, out.observed)
     l_sdf, l_fs = sdf_losses(out.sdf, out.z, rays.depth_m, out.sample_valid, cfg.truncation_m)
     l_s = smoothness_term(block_map, cfg, block_ids, generator) if with_smoothness else l_c.new_zeros(())
     return combine(cfg.weights, l_c, l_d, l_sdf, l_fs, l_s), out

@@ -18,6 +18,7 @@ class RenderOutput:
         sdf: ``(R, S)`` predicted SDF in truncation units (0 at invalid samples).
         sample_valid: ``(R, S)`` bool, the sample lies in a block.
         ray_valid: ``(R,)`` bool, the ray has at least one valid sample.
+        observed: ``(R,)`` bool, the ray counts for the colour and depth losses (see :func:`observed_rays`).
     """
 
     depth_m: torch.Tensor
@@ -26,6 +27,7 @@ class RenderOutput:
     sdf: torch.Tensor
     sample_valid: torch.Tensor
     ray_valid: torch.Tensor
+    observed: torch.Tensor
 
 
 def sdf_weights(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, truncation_m: float,
@@ -57,6 +59,21 @@ def sdf_weights(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, 
         keep = ~has[:, None] | (z <= (z_surface + truncation_m)[:, None])
     w = w * keep.to(w.dtype)
     return w / (w.sum(dim=-1, keepdim=True) + eps)
+
+
+def observed_rays(sample_valid: torch.Tensor, z: torch.Tensor, depth_obs: torch.Tensor,
+                  truncation_m: float) -> torch.Tensor:
+    """Rays whose rendered colour and depth can be compared with the observation: ``(R,)`` bool.
+
+    A ray with measured depth counts only when a consulted block holds a sample within ``tr`` of that
+    depth, i.e. the observed surface lies in the map. Otherwise its samples inside blocks are free space
+    only, its normalised weights spread over them, and the rendered depth and colour are meaningless
+    (they would pull a pose or train colours onto empty space). A ray without depth counts when it has
+    any valid sample.
+    """
+    near_surface = (z - depth_obs[:, None]).abs() <= truncation_m
+    has_depth = depth_obs > 0
+    return sample_valid.any(dim=-1) & (~has_depth | (sample_valid & near_surface).any(dim=-1))
 
 
 def composite(weights: torch.Tensor, z: torch.Tensor, rgb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

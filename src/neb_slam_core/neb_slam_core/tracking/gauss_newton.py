@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from ..config import RenderConfig
 from ..render.rays import PixelSamples
-from ..render.volume import sdf_weights
+from ..render.volume import observed_rays, sdf_weights
 from ..scene.block_map import BlockMap
 
 
@@ -42,8 +42,8 @@ class PoseEvaluation:
 
     Attributes:
         cost: the objective (the paper's weighted colour + depth + SDF + free-space losses).
-        n_valid_rays: rays with at least one sample inside a consulted block.
-        depth_residual_m: mean |rendered - measured| depth over those rays with depth.
+        n_valid_rays: rays whose observed surface lies in a consulted block (:func:`observed_rays`).
+        depth_residual_m: median |rendered - measured| depth over those rays with depth.
     The remaining fields are internal to :func:`normal_equations`.
     """
 
@@ -99,7 +99,7 @@ def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.nda
         colour = (w[..., None] * c).sum(dim=-2)
 
     obs_d = pixels.depth_m
-    ray_valid = valid.any(dim=-1)
+    ray_valid = observed_rays(valid, z, obs_d, tr)
     m_d = ray_valid & (obs_d > 0)
     obs_sdf = obs_d[:, None] - z
     band = valid & (obs_d > 0)[:, None] & (obs_sdf.abs() <= tr)
@@ -118,7 +118,7 @@ def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.nda
     # rendering weight, or in violated free space. Elsewhere a residual's Jacobian is ~0; leaving those
     # samples out only coarsens the Gauss-Newton matrix, never the cost a step is judged by.
     active = band | (valid & (w.detach() > 1e-4)) | (front & (residuals["free_space"][0].abs() > 1e-2))
-    resid = float(residuals["depth"][0][m_d].abs().mean()) if bool(m_d.any()) else float("inf")
+    resid = float(residuals["depth"][0][m_d].abs().median()) if bool(m_d.any()) else float("inf")
     return PoseEvaluation(cost, int(ray_valid.sum()), resid, T, points.detach(), s, w, depth, colour, active,
                           residuals)
 

@@ -35,8 +35,9 @@ class TrackingResult:
     Attributes:
         T_world_cam: the optimised pose (float64 4x4).
         loss: objective at that pose.
-        depth_residual_m: mean |rendered - measured| depth over the valid rays at that pose.
-        n_valid_rays: rays with at least one sample inside a block.
+        depth_residual_m: median |rendered - measured| depth over the valid rays at that pose (the median,
+            so rays into parts of a block the map has not learnt yet do not dominate it).
+        n_valid_rays: rays whose observed surface lies inside a consulted block.
         iterations: optimisation steps taken.
     """
 
@@ -80,18 +81,18 @@ class Tracker:
             rays = px.to_world(pose.matrices()[0])
             loss, out = objective(block_map, rays, self.render_cfg, ids, generator=self.generator,
                                   with_smoothness=False)
-            n_valid = int(out.ray_valid.sum())
+            n_valid = int(out.observed.sum())
             value = float(loss.total.detach())
             if n_valid >= self.cfg.min_valid_rays and value < best[0]:
-                ok = out.ray_valid & (rays.depth_m > 0)
-                resid = float((out.depth_m - rays.depth_m)[ok].abs().mean().detach()) if ok.any() else float("inf")
+                ok = out.observed & (rays.depth_m > 0)
+                resid = float((out.depth_m - rays.depth_m)[ok].abs().median().detach()) if ok.any() else float("inf")
                 best = (value, pose.numpy()[0], resid, n_valid)
             opt.zero_grad(set_to_none=True)
             loss.total.backward()
             opt.step()
         value, T, resid, n_valid = best
         if not np.isfinite(value):  # never enough valid rays
-            n_valid = int(out.ray_valid.sum())
+            n_valid = int(out.observed.sum())
         return TrackingResult(T, value, resid, n_valid, self.cfg.iterations)
 
     def _levenberg_marquardt(self, block_map: BlockMap, px: PixelSamples, T_init: np.ndarray,

@@ -159,8 +159,9 @@ class BlockMap(nn.Module):
             block = self.blocks[block_id]
             p = points_world[idx]
             w = self._blend_weight(block, p)
-            feats = feats.index_add(0, idx, block.grid(block.to_local(p)).to(feats.dtype) * w[:, None])
-            weight_sum = weight_sum.index_add(0, idx, w)
+            # in place: an out-of-place index_add copies the whole (N, L*F) tensor once per block
+            feats.index_add_(0, idx, block.grid(block.to_local(p)).to(feats.dtype) * w[:, None])
+            weight_sum.index_add_(0, idx, w)
         feats = feats / weight_sum.clamp(min=1e-12)[:, None]
         return feats, valid
 

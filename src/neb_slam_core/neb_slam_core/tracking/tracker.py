@@ -1,8 +1,8 @@
 """Frame-to-map tracking: optimise one camera pose by rendering the blocks in its frustum.
 
 N_t random pixels with valid depth and the paper's objective without the smoothness term (which does
-not depend on the pose). Only rays with samples inside blocks contribute, so unmapped space never
-pulls the pose. Two optimisers (``TrackingConfig.method``):
+not depend on the pose). Only rays whose observed surface lies inside a block in the frustum
+contribute (:func:`~neb_slam_core.render.volume.observed_rays`), so unmapped space never pulls the pose. Two optimisers (``TrackingConfig.method``):
 
 - ``adam``, the paper's: a fixed number of Adam steps with fresh stratified samples each; the pose
   with the lowest loss seen is kept.

@@ -11,7 +11,7 @@ Sequences:
   size + decoders).
 - ``small``: the ``small`` synthetic preset (60 frames, 96x72), config ``synthetic``; a quick check.
 
-The run directory (``--out``, default ``runs/bench-<sequence>``) keeps everything ``neb-slam run``
+The run directory (``--out``, default ``runs/bench-<sequence>-<date-time>``) keeps everything ``neb-slam run``
 writes (trajectory, plots, mesh, metrics.json). Extra arguments after ``--`` go to ``neb-slam run``.
 
 Examples::
@@ -28,6 +28,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from neb_slam_core.config_io import load_config
@@ -56,19 +57,21 @@ def main() -> None:
     p.add_argument("sequence", choices=sorted(SEQUENCES))
     p.add_argument("--config", default=None, help="config preset or file (default: tum / synthetic)")
     p.add_argument("--frames", type=int, default=None, help="process only the first N frames")
-    p.add_argument("--out", type=Path, default=None, help="run directory (default runs/bench-<sequence>)")
+    p.add_argument("--out", type=Path, default=None, help="run directory (default runs/bench-<sequence>-<date-time>)")
     p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
     args = p.parse_args(argv)
 
     source = source_of(args.sequence)
     config = args.config or SEQUENCES[args.sequence]
-    out = args.out or REPO / "runs" / f"bench-{args.sequence}"
+    out = args.out or REPO / "runs" / f"bench-{args.sequence}-{time.strftime('%Y%m%d-%H%M%S')}"
     cmd = [sys.executable, "-m", "neb_slam_core.cli.main", "run", str(source), "--config", config, "--out", str(out)]
     if args.frames:
         cmd += ["--frames", str(args.frames)]
     cmd += extra
     load_before = os.getloadavg()[0]
-    subprocess.run(cmd, check=True)
+    code = subprocess.run(cmd).returncode
+    if code != 0 and not (out / "metrics.json").is_file():
+        sys.exit(f"neb-slam run failed (exit code {code}); see its messages above")
     metrics = json.loads((out / "metrics.json").read_text())
 
     cfg = load_config(config)

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
 from ..config import RenderConfig
+from ..geometry.lie import compose_delta
 from ..render.rays import PixelSamples
 from ..render.volume import observed_rays, sdf_weights
 from ..scene.block_map import BlockMap
@@ -160,8 +160,7 @@ def normal_equations(ev: PoseEvaluation, block_map: BlockMap, block_ids: list[in
 
 
 def apply_step(T_world_cam: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """The pose after the update ``step`` = (omega, dt): ``R = exp(omega) R``, ``t = t + dt`` (float64)."""
-    T = np.array(T_world_cam, dtype=np.float64)
-    T[:3, :3] = Rotation.from_rotvec(step[:3]).as_matrix() @ T[:3, :3]
-    T[:3, 3] = T[:3, 3] + step[3:]
-    return T
+    """The pose after the update ``step`` = (omega, dt): ``R = exp(omega) R``, ``t = t + dt`` (float64), the
+    parameterisation of :func:`~neb_slam_core.geometry.lie.compose_delta`."""
+    T = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64))
+    return compose_delta(T, torch.as_tensor(np.asarray(step, dtype=np.float64))).numpy()

@@ -105,13 +105,18 @@ def test_a_frame_without_depth_is_a_tracking_failure_that_keeps_the_prediction(s
 def test_non_keyframe_poses_follow_corrections_of_their_keyframe(frames, full_run):
     slam = full_run[0]
     i = 7  # keyframe 5 is its keyframe
-    kf = slam.keyframes[slam._frames[i].keyframe_id]
-    before_kf, before = kf.T_world_cam.copy(), slam.pose_of(i)
+    k = slam.frontend.keyframe_of(i)
+    assert slam.keyframes[k].frame_index == 5
+    poses = slam.keyframes.poses()
+    before = slam.pose_of(i)
     correction = np.eye(4)
     correction[:3, :3] = Rotation.from_euler("z", 3.0, degrees=True).as_matrix()
     correction[:3, 3] = [0.05, 0.0, -0.02]
+    corrected = poses.copy()
+    corrected[k] = correction @ poses[k]
     try:
-        kf.T_world_cam = correction @ before_kf
+        slam.set_keyframe_poses(corrected)
         np.testing.assert_allclose(slam.pose_of(i), correction @ before, atol=1e-12)
+        np.testing.assert_allclose(slam.keyframes[k].T_world_cam, corrected[k], atol=0)
     finally:
-        kf.T_world_cam = before_kf
+        slam.set_keyframe_poses(poses)

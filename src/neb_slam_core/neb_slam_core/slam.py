@@ -5,6 +5,18 @@
         result = slam.process(frame)
     trajectory = slam.trajectory()   # corrected poses of every processed frame
 
+The engine has two halves that share nothing but the block map, so that they can also run in two
+processes (the ROS ``tracker`` and ``mapper`` nodes) and still compute the same thing:
+
+- :class:`Frontend` (tracking): rectify, predict, track, judge, allocate, decide keyframe and mapping,
+  and keep every frame's pose relative to its keyframe;
+- :class:`Backend` (mapping): the keyframe store, the first frame's map initialisation and the joint
+  optimisation of blocks, decoders and keyframe poses.
+
+:class:`Slam` runs both in one process on one block map. Across processes, what the frontend hands to the
+backend is a :class:`FrontendStep` (a keyframe, its pose and whether to map now), and what comes back is
+the map's changed blocks, its decoders and the corrected keyframe poses (``scene/map_update.py``).
+
 Poses of non-keyframes are stored relative to the latest keyframe before them, so corrections of
 keyframe poses (by mapping or loop closure) move them too.
 """
@@ -12,7 +24,7 @@ keyframe poses (by mapping or loop closure) move them too.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -22,12 +34,18 @@ from .geometry.rays import backproject_depth
 from .geometry.rectify import Rectifier
 from .geometry.se3 import invert, orthonormalize
 from .io.trajectory import Trajectory
-from .mapping.keyframes import KeyframeStore
+from .mapping.keyframes import Keyframe, KeyframeStore
 from .mapping.mapper import Mapper
 from .render.rays import all_pixels
 from .scene.block_map import BlockMap
 from .tracking.tracker import Tracker
 from .types import RgbdFrame, StepResult, StepTimings
+
+
+def new_block_map(cfg: SlamConfig) -> BlockMap:
+    """The empty map of an engine with ``cfg`` (each process of a split engine makes its own, identical)."""
+    return BlockMap(cfg.block, cfg.one_blob, cfg.decoder, grid_backend=cfg.grid_backend,
+                    seed=cfg.seed).to(torch.device(cfg.device))
 
 
 @dataclass
@@ -39,26 +57,45 @@ class _FramePose:
     T_kf_cam: np.ndarray
 
 
-class Slam:
-    """NeB-SLAM engine for one RGB-D stream."""
+@dataclass
+class FrontendStep:
+    """What the frontend did with one frame, and what the backend has to do with it.
 
-    def __init__(self, cfg: SlamConfig = SlamConfig(), T_world_first: np.ndarray | None = None):
+    Attributes:
+        result: the frame's :class:`StepResult` (``mapped`` and ``timings.map_ms`` are the backend's to fill).
+        frame: the frame as tracked (rectified): what a keyframe stores.
+        keyframe_id: the id of the keyframe it became, or None.
+        map_now: the backend optimises after adding this keyframe (always a keyframe when True).
+        first: the first frame: the backend initialises the map on it.
+    """
+
+    result: StepResult
+    frame: RgbdFrame
+    keyframe_id: int | None
+    map_now: bool
+    first: bool
+
+
+class Frontend:
+    """The tracking half of the engine over ``block_map`` (which it reads, and grows by allocation).
+
+    Keyframe poses live here as a list indexed by keyframe id; the backend's corrections come back
+    through :meth:`set_keyframe_poses`.
+    """
+
+    def __init__(self, cfg: SlamConfig, block_map: BlockMap, T_world_first: np.ndarray | None = None):
         self.cfg = cfg
-        dev = torch.device(cfg.device)
-        torch.manual_seed(cfg.seed)
+        self.block_map = block_map
         self.rng = np.random.default_rng(cfg.seed)
-        self.block_map = BlockMap(cfg.block, cfg.one_blob, cfg.decoder, grid_backend=cfg.grid_backend,
-                                  seed=cfg.seed).to(dev)
-        self.keyframes = KeyframeStore(cfg.keyframes.pixel_fraction, seed=cfg.seed + 1, device=dev)
         self.tracker = Tracker(cfg.tracking, cfg.render, seed=cfg.seed + 2)
-        self.mapper = Mapper(self.block_map, self.keyframes, cfg.mapping, cfg.render, seed=cfg.seed + 3)
         self.T_world_first = np.eye(4) if T_world_first is None else np.array(T_world_first, dtype=np.float64)
+        self.keyframe_poses: list[np.ndarray] = []
         self._frames: list[_FramePose] = []
         self._residuals: list[float] = []
         self._ok_streak = 0  # consecutive frames tracked (the first frame counts)
         self._rectify = Rectifier()
 
-    # ------------------------------------------------------------------ state
+    # ------------------------------------------------------------------ poses
 
     @property
     def n_frames(self) -> int:
@@ -67,7 +104,11 @@ class Slam:
     def pose_of(self, i: int) -> np.ndarray:
         """Current (corrected) pose of processed frame ``i``."""
         f = self._frames[i]
-        return self.keyframes[f.keyframe_id].T_world_cam @ f.T_kf_cam
+        return self.keyframe_poses[f.keyframe_id] @ f.T_kf_cam
+
+    def keyframe_of(self, i: int) -> int:
+        """Id of the keyframe that frame ``i``'s pose is kept relative to."""
+        return self._frames[i].keyframe_id
 
     def trajectory(self) -> Trajectory:
         """Corrected poses of every processed frame."""
@@ -76,26 +117,23 @@ class Slam:
         return Trajectory(np.array([f.stamp_ns for f in self._frames]),
                           np.stack([self.pose_of(i) for i in range(self.n_frames)]))
 
-    def observed_points(self, max_points: int = 2_000_000) -> np.ndarray:
-        """World points of all keyframes' kept pixels (for mesh culling), float64 ``(K, 3)``."""
-        pts = np.concatenate([kf.observed_points() for kf in self.keyframes.keyframes]) if len(self.keyframes) else np.zeros((0, 3))
-        if len(pts) > max_points:
-            pts = pts[self.rng.choice(len(pts), max_points, replace=False)]
-        return pts
+    def set_keyframe_poses(self, poses: np.ndarray) -> None:
+        """Corrected poses ``(K, 4, 4)`` of the first K keyframes (from mapping or loop closure)."""
+        for k, T in enumerate(np.asarray(poses, dtype=np.float64)):
+            self.keyframe_poses[k] = T.copy()
 
     # ------------------------------------------------------------------ the loop
 
-    def process(self, frame: RgbdFrame) -> StepResult:
-        """Track ``frame`` (undistorted first when it carries lens distortion), then allocate, keyframe
-        and map as the paper's loop does."""
+    def step(self, frame: RgbdFrame) -> FrontendStep:
+        """Track ``frame`` (undistorted first when it carries lens distortion), allocate, and decide
+        whether it becomes a keyframe and whether the map is optimised after it."""
         t_start = time.perf_counter()
         frame = self._rectify(frame)
         index = self.n_frames
         timings = StepTimings()
         if index == 0:
-            return self._initialise(frame, t_start)
+            return self._first(frame, t_start)
 
-        # predict (constant velocity) and track
         # constant velocity from the last two frames, only when both were tracked: after a failure the
         # velocity is unknown, and extrapolating an extrapolation runs away
         T_prev = self.pose_of(index - 1)
@@ -117,39 +155,34 @@ class Slam:
             new_block, tau = self._allocate(frame, T)
         timings.allocate_ms = 1e3 * (time.perf_counter() - t0)
 
-        is_keyframe = ok and (index % self.cfg.keyframes.every == 0 or new_block is not None)
-        if is_keyframe:
-            self._add_keyframe(frame, T, index)
+        # a mapping frame is a keyframe too, so that a backend in another process learns of every
+        # mapping step from the keyframe that triggers it (with keyframes.every == mapping.every, the
+        # paper's setting, this adds no keyframe)
+        c = self.cfg
+        map_now = ok and (index % c.mapping.every == 0 or new_block is not None)
+        is_keyframe = ok and (index % c.keyframes.every == 0 or map_now)
+        keyframe_id = self._add_keyframe(T) if is_keyframe else None
         self._record(frame.stamp_ns, T)
-
-        mapped = False
-        if ok and (index % self.cfg.mapping.every == 0 or new_block is not None):
-            t0 = time.perf_counter()
-            self.mapper.optimise()
-            timings.map_ms = 1e3 * (time.perf_counter() - t0)
-            mapped = True
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
-        return StepResult(index, frame.stamp_ns, self.pose_of(index), is_keyframe,
-                          None if new_block is None else new_block.block_id, tau, ok, reason, mapped,
-                          len(self.block_map), timings)
+        result = StepResult(index, frame.stamp_ns, T.copy(), is_keyframe,
+                            None if new_block is None else new_block.block_id, tau, ok, reason, False,
+                            len(self.block_map), timings)
+        return FrontendStep(result, frame, keyframe_id, map_now, False)
 
     # ------------------------------------------------------------------ steps
 
-    def _initialise(self, frame: RgbdFrame, t_start: float) -> StepResult:
+    def _first(self, frame: RgbdFrame, t_start: float) -> FrontendStep:
         T = self.T_world_first
         t0 = time.perf_counter()
         new_block, tau = self._allocate(frame, T)
-        alloc_ms = 1e3 * (time.perf_counter() - t0)
-        self._add_keyframe(frame, T, 0)
+        timings = StepTimings(allocate_ms=1e3 * (time.perf_counter() - t0))
+        keyframe_id = self._add_keyframe(T)
         self._record(frame.stamp_ns, T)
         self._ok_streak = 1
-        t0 = time.perf_counter()
-        rays = all_pixels(frame, device=self.block_map.device).to_world(torch.as_tensor(T, dtype=torch.float32))
-        self.mapper.optimise_on_rays(rays, self.cfg.mapping.first_iterations)
-        map_ms = 1e3 * (time.perf_counter() - t0)
-        timings = StepTimings(0.0, alloc_ms, map_ms, 1e3 * (time.perf_counter() - t_start))
-        return StepResult(0, frame.stamp_ns, T.copy(), True, None if new_block is None else new_block.block_id,
-                          tau, True, "", True, len(self.block_map), timings)
+        timings.total_ms = 1e3 * (time.perf_counter() - t_start)
+        result = StepResult(0, frame.stamp_ns, T.copy(), True, None if new_block is None else new_block.block_id,
+                            tau, True, "", False, len(self.block_map), timings)
+        return FrontendStep(result, frame, keyframe_id, True, True)
 
     def _tracking_ok(self, tracked) -> tuple[bool, str]:
         c = self.cfg.tracking
@@ -179,15 +212,119 @@ class Slam:
                                                                   device=self.block_map.device), ids)
         return alloc.block, alloc.tau
 
-    def _add_keyframe(self, frame: RgbdFrame, T: np.ndarray, index: int) -> None:
-        kf = self.keyframes.add(frame, T, index)
+    def _add_keyframe(self, T: np.ndarray) -> int:
+        self.keyframe_poses.append(np.array(T, dtype=np.float64))
+        return len(self.keyframe_poses) - 1
+
+    def _record(self, stamp_ns: int, T: np.ndarray) -> None:
+        kf_id = len(self.keyframe_poses) - 1
+        self._frames.append(_FramePose(stamp_ns, kf_id, invert(self.keyframe_poses[kf_id]) @ T))
+
+
+@dataclass
+class MappingStep:
+    """What the backend did with one keyframe: the map steps it took and the blocks they changed."""
+
+    keyframe: Keyframe
+    mapped: bool
+    map_ms: float
+    changed_block_ids: set[int] = field(default_factory=set)
+
+
+class Backend:
+    """The mapping half of the engine over ``block_map``: keyframes in, optimised map and poses out."""
+
+    def __init__(self, cfg: SlamConfig, block_map: BlockMap):
+        self.cfg = cfg
+        self.block_map = block_map
+        self.keyframes = KeyframeStore(cfg.keyframes.pixel_fraction, seed=cfg.seed + 1, device=block_map.device)
+        self.mapper = Mapper(block_map, self.keyframes, cfg.mapping, cfg.render, seed=cfg.seed + 3)
+
+    def add_keyframe(self, frame: RgbdFrame, T_world_cam: np.ndarray, frame_index: int, map_now: bool,
+                     first: bool = False) -> MappingStep:
+        """Store keyframe ``frame`` (rectified) at ``T_world_cam``; then initialise the map on it
+        (``first``) or run a joint optimisation step (``map_now``)."""
+        kf = self.keyframes.add(frame, T_world_cam, frame_index)
         pts = torch.as_tensor(kf.observed_points(), dtype=torch.float32, device=self.block_map.device)
         if len(pts):
             share = self.block_map.contains(pts).float().mean(dim=0)  # (M,)
             for block_id in (share > 0.1).nonzero(as_tuple=True)[0].tolist():
                 kf.block_ids.append(block_id)
                 self.block_map.blocks[block_id].keyframe_ids.append(kf.keyframe_id)
+        if not (first or map_now):
+            return MappingStep(kf, False, 0.0)
+        t0 = time.perf_counter()
+        if first:
+            rays = all_pixels(frame, device=self.block_map.device).to_world(
+                torch.as_tensor(T_world_cam, dtype=torch.float32))
+            res = self.mapper.optimise_on_rays(rays, self.cfg.mapping.first_iterations)
+        else:
+            res = self.mapper.optimise()
+        return MappingStep(kf, True, 1e3 * (time.perf_counter() - t0), res.changed_block_ids)
 
-    def _record(self, stamp_ns: int, T: np.ndarray) -> None:
-        kf = self.keyframes[len(self.keyframes) - 1]
-        self._frames.append(_FramePose(stamp_ns, kf.keyframe_id, invert(kf.T_world_cam) @ T))
+    def observed_points(self, rng: np.random.Generator, max_points: int = 2_000_000) -> np.ndarray:
+        """World points of all keyframes' kept pixels (for mesh culling), float64 ``(K, 3)``."""
+        kfs = self.keyframes.keyframes
+        pts = np.concatenate([kf.observed_points() for kf in kfs]) if kfs else np.zeros((0, 3))
+        if len(pts) > max_points:
+            pts = pts[rng.choice(len(pts), max_points, replace=False)]
+        return pts
+
+
+class Slam:
+    """NeB-SLAM engine for one RGB-D stream: a frontend and a backend on one block map."""
+
+    def __init__(self, cfg: SlamConfig = SlamConfig(), T_world_first: np.ndarray | None = None):
+        self.cfg = cfg
+        torch.manual_seed(cfg.seed)
+        self.block_map = new_block_map(cfg)
+        self.frontend = Frontend(cfg, self.block_map, T_world_first)
+        self.backend = Backend(cfg, self.block_map)
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def keyframes(self) -> KeyframeStore:
+        return self.backend.keyframes
+
+    @property
+    def n_frames(self) -> int:
+        return self.frontend.n_frames
+
+    def pose_of(self, i: int) -> np.ndarray:
+        """Current (corrected) pose of processed frame ``i``."""
+        return self.frontend.pose_of(i)
+
+    def trajectory(self) -> Trajectory:
+        """Corrected poses of every processed frame."""
+        return self.frontend.trajectory()
+
+    def observed_points(self, max_points: int = 2_000_000) -> np.ndarray:
+        """World points of all keyframes' kept pixels (for mesh culling), float64 ``(K, 3)``."""
+        return self.backend.observed_points(self.frontend.rng, max_points)
+
+    def set_keyframe_poses(self, poses: np.ndarray) -> None:
+        """Correct the poses ``(K, 4, 4)`` of the first K keyframes (e.g. a loop closure); the frames
+        kept relative to them move with them."""
+        self.keyframes.set_poses(poses)
+        self.frontend.set_keyframe_poses(poses)
+
+    # ------------------------------------------------------------------ the loop
+
+    def process(self, frame: RgbdFrame) -> StepResult:
+        """Track ``frame`` (undistorted first when it carries lens distortion), then allocate, keyframe
+        and map as the paper's loop does."""
+        t_start = time.perf_counter()
+        step = self.frontend.step(frame)
+        result = step.result
+        if step.keyframe_id is not None:
+            mapping = self.backend.add_keyframe(step.frame, result.T_world_cam, result.frame_index, step.map_now,
+                                                step.first)
+            assert mapping.keyframe.keyframe_id == step.keyframe_id, "frontend and backend keyframes diverged"
+            if mapping.mapped:
+                result.mapped = True
+                result.timings.map_ms = mapping.map_ms
+                self.frontend.set_keyframe_poses(self.keyframes.poses())
+                result.T_world_cam = self.pose_of(result.frame_index)
+        result.timings.total_ms = 1e3 * (time.perf_counter() - t_start)
+        return result

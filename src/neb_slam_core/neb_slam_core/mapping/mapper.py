@@ -3,7 +3,7 @@ mapping / bundle adjustment)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -19,10 +19,12 @@ from .optimizer import MapOptimizer
 
 @dataclass
 class MappingResult:
-    """One mapping call: steps taken and the last total loss."""
+    """One mapping call: steps taken, the last total loss, and the blocks whose tables it changed (a
+    block no ray reached has no gradient, and Adam leaves parameters without gradient untouched)."""
 
     iterations: int
     loss: float
+    changed_block_ids: set[int] = field(default_factory=set)
 
 
 class Mapper:
@@ -45,14 +47,19 @@ class Mapper:
     def optimise_on_rays(self, rays: RayBatch, iterations: int) -> MappingResult:
         """Map-only optimisation on a fixed pool of world rays (the first frame's initialisation)."""
         loss_value = float("nan")
+        changed: set[int] = set()
         for _ in range(iterations):
             batch = rays[torch.randint(len(rays), (self.cfg.n_rays,), generator=self.generator)]
             self.map_opt.zero_grad()
             loss, _ = objective(self.block_map, batch, self.render_cfg, None, generator=self.generator)
             loss.total.backward()
+            changed |= self._blocks_with_gradient()
             self.map_opt.step()
             loss_value = float(loss.total.detach())
-        return MappingResult(iterations, loss_value)
+        return MappingResult(iterations, loss_value, changed)
+
+    def _blocks_with_gradient(self) -> set[int]:
+        return {b.block_id for b in self.block_map.blocks if b.grid.table.grad is not None}
 
     def optimise(self, iterations: int | None = None, optimise_poses: bool | None = None) -> MappingResult:
         """``iterations`` joint steps over all keyframes plus the newest block's keyframes."""
@@ -68,6 +75,7 @@ class Mapper:
             pose_opt = torch.optim.Adam([poses.delta], lr=self.cfg.pose_lr)
         newest_kfs = self.block_map.blocks[-1].keyframe_ids if len(self.block_map) > 1 else []
         loss_value = float("nan")
+        changed: set[int] = set()
         for _ in range(iterations):
             idx = kfs.draw(self.cfg.n_rays, self.generator)
             if newest_kfs and self.cfg.n_rays_newest_block:
@@ -80,6 +88,7 @@ class Mapper:
                 pose_opt.zero_grad(set_to_none=True)
             loss, _ = objective(self.block_map, batch, self.render_cfg, None, generator=self.generator)
             loss.total.backward()
+            changed |= self._blocks_with_gradient()
             self.map_opt.step()
             if pose_opt is not None:
                 poses.delta.grad[0] = 0.0  # the first keyframe anchors the world frame
@@ -87,4 +96,4 @@ class Mapper:
             loss_value = float(loss.total.detach())
         if pose_opt is not None:
             kfs.set_poses(poses.numpy())
-        return MappingResult(iterations, loss_value)
+        return MappingResult(iterations, loss_value, changed)

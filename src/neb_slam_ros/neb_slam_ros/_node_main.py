@@ -1,21 +1,34 @@
-"""The ``main()`` shared by every node executable: init rclpy, spin one node, shut down cleanly.
+"""The ``main()`` shared by every node executable: init rclpy, spin the nodes, shut down cleanly.
 
 Ctrl-C (SIGINT), SIGTERM (what ``ros2 launch`` and systemd send) and a shutdown requested from elsewhere
-all end the process with status 0 and no traceback, whenever they arrive (also during start-up).
+all end the process with status 0 and no traceback, whenever they arrive (also during start-up). A node
+with a ``close()`` method gets it called once spinning ends (it writes its output there: the ROS
+context may already be shut down, so ``close`` must not publish). A bad parameter ends the process
+with status 2 and one line naming the parameter.
 """
 
 from __future__ import annotations
 
+import sys
+import time
 from collections.abc import Callable, Sequence
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+
+from neb_slam_ros.params import ParameterError
 
 try:  # the exception rcl raises when used with a context that a signal has already shut down
     from rclpy._rclpy_pybind11 import RCLError
 except ImportError:  # pragma: no cover - layout of other rclpy builds
     RCLError = RuntimeError
+
+
+def final_log(node: Node, text: str, level: str = "INFO") -> None:
+    """A log line from ``close()``: the ROS context is shut down by then, so rclpy's logger (which also
+    publishes to /rosout) would complain; this writes the same format to stderr only."""
+    print(f"[{level}] [{time.time():.9f}] [{node.get_logger().name}]: {text}", file=sys.stderr, flush=True)
 
 
 def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -> int:
@@ -25,21 +38,33 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -
     args: the command line including ROS arguments (``--ros-args -r __ns:=/x -p name:=value``);
         None means ``sys.argv``.
     """
+    return run_nodes([make_node], args, multi_threaded=False)
+
+
+def run_nodes(makers: Sequence[Callable[[], Node]], args: Sequence[str] | None = None,
+              multi_threaded: bool = True) -> int:
+    """Run several nodes in one process on one executor (multi-threaded by default)."""
     # rclpy.init installs rclpy's SIGINT/SIGTERM handlers: they shut the context down, which makes a
     # spinning executor raise ExternalShutdownException (SIGTERM) or lets Python raise KeyboardInterrupt
     # (SIGINT).
     rclpy.init(args=list(args) if args is not None else None)
-    executor: SingleThreadedExecutor | None = None
-    node: Node | None = None
+    executor = None
+    nodes: list[Node] = []
+    status = 0
     try:
-        # the executor exists before the node logs that it started, so a signal right after that line
+        # the executor exists before a node logs that it started, so a signal right after that line
         # finds everything in place
-        executor = SingleThreadedExecutor()
-        node = make_node()
-        executor.add_node(node)
+        executor = MultiThreadedExecutor() if multi_threaded else SingleThreadedExecutor()
+        for make in makers:
+            nodes.append(make())
+            executor.add_node(nodes[-1])
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # the normal way to stop a node
+    except ParameterError as exc:
+        name = nodes[-1].get_name() if nodes else "neb_slam"
+        print(f"[{name}] error: {exc}", file=sys.stderr)
+        status = 2
     except RCLError:
         if rclpy.ok():
             raise  # a real failure, not the consequence of a requested shutdown
@@ -47,7 +72,13 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -
     finally:
         if executor is not None:
             executor.shutdown()
-        if node is not None:
+        for node in nodes:
+            close = getattr(node, "close", None)
+            if close is not None:
+                try:
+                    close()
+                except KeyboardInterrupt:
+                    print(f"[{node.get_name()}] closing interrupted: its output may be incomplete", file=sys.stderr)
             node.destroy_node()
         rclpy.try_shutdown()  # no-op when a signal already shut the context down
-    return 0
+    return status

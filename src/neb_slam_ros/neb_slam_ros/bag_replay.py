@@ -1,30 +1,183 @@
-"""``bag_replay``: plays the camera topics of a converted ROS 2 bag into the suite (and /clock).
+"""``bag_replay``: plays a converted RGB-D bag into the suite, with ``/clock``.
 
-Placeholder: it starts, logs one line and spins; the real node is a later issue.
+Reads a ROS 2 bag (sqlite3 or mcap; ROS 1 ``.bag`` files too) with the core's bag loader, which finds the
+colour, depth, camera-info and ground-truth topics and pairs colour with depth by stamp, and publishes
+each frame on ``rgb/image`` (rgb8), ``depth/image`` (32FC1 metres: exact), ``rgb/camera_info`` (with the
+bag's distortion) and, when the bag has ground truth, ``ground_truth/pose``; stamps are the bag's.
+
+``rate`` 1.0 plays at recorded speed (0: as fast as possible). ``lockstep`` publishes the next frame
+only after the tracker published the pose of the previous one (``pose``): deterministic and lossless on
+a slow machine. ``start``/``count`` select frames; at the end it stops the process, or starts over with
+``loop``.
 
 Example::
 
-    ros2 run neb_slam_ros bag_replay                  # after colcon build and sourcing install/setup.bash
-    python -m neb_slam_ros.bag_replay --ros-args -r __ns:=/robot1/neb_slam
+    ros2 run neb_slam_ros bag_replay --ros-args -p bag:=bags/fr1_xyz -p lockstep:=true
 """
 
 from __future__ import annotations
 
 import sys
+import threading
+import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
+import rclpy
+from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image
 
-from neb_slam_ros import NAMESPACE
+from neb_slam_core.datasets.bag import BagDataset
+from neb_slam_core.errors import DatasetError
+from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import run_node
+from neb_slam_ros.params import ParameterError, declare_options, require
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    bag: str = ""
+    rate: float = 1.0
+    lockstep: bool = False
+    lockstep_timeout_s: float = 300.0
+    start: int = 0
+    count: int = 0
+    loop: bool = False
+    wait_for_subscribers_s: float = 60.0
+    depth_scale: float = 0.001
+    camera_frame_id: str = "camera"
+    world_frame_id: str = "map"
+
+    PARAMETER_DOCS = {
+        "bag": "the bag: a ROS 2 bag folder (sqlite3 or mcap) or a ROS 1 .bag file",
+        "rate": "playback speed, 1.0 = as recorded, 0 = as fast as possible",
+        "lockstep": "publish the next frame only after the tracker published the previous frame's pose",
+        "lockstep_timeout_s": "in lockstep, go on (with a warning) when no pose came within this",
+        "start": "first frame to play (0-based)",
+        "count": "frames to play (0: all)",
+        "loop": "start over at the end instead of stopping",
+        "wait_for_subscribers_s": "wait this long for the tracker's subscriptions (and, in lockstep, its pose "
+                                  "publisher) before the first frame",
+        "depth_scale": "metres per unit of the bag's 16UC1 depth",
+        "camera_frame_id": "frame_id of the published images",
+        "world_frame_id": "frame_id of the published ground-truth poses",
+    }
+
+    def check(self) -> None:
+        require(bool(self.bag), "bag", "the path of a bag (-p bag:=bags/NAME)", self.bag)
+        require(self.rate >= 0, "rate", ">= 0", self.rate)
+        require(self.lockstep_timeout_s > 0, "lockstep_timeout_s", "> 0", self.lockstep_timeout_s)
+        require(self.wait_for_subscribers_s >= 0, "wait_for_subscribers_s", ">= 0", self.wait_for_subscribers_s)
+        require(self.start >= 0, "start", ">= 0", self.start)
+        require(self.count >= 0, "count", ">= 0 (0: all)", self.count)
+        require(self.depth_scale > 0, "depth_scale", "> 0", self.depth_scale)
 
 
 class BagReplayNode(Node):
-    """Placeholder; to come: publish a bag's colour, depth and camera_info at a chosen rate or in lockstep."""
+    """Publishes a bag's frames; see the module docstring."""
 
     def __init__(self) -> None:
         super().__init__("bag_replay", namespace=NAMESPACE)
-        self.get_logger().info("neb_slam bag_replay started (placeholder: the real node is a later issue)")
+        self.opt = declare_options(self, ReplayOptions)
+        try:
+            self.dataset = BagDataset(self.opt.bag, depth_scale=self.opt.depth_scale)
+        except DatasetError as exc:
+            raise ParameterError("bag", str(exc)) from None
+        n = len(self.dataset)
+        stop = n if self.opt.count == 0 else min(n, self.opt.start + self.opt.count)
+        self.indices = range(min(self.opt.start, n), stop)
+        reliable = qos.camera(True)
+        self.pub_rgb = self.create_publisher(Image, "rgb/image", reliable)
+        self.pub_depth = self.create_publisher(Image, "depth/image", reliable)
+        self.pub_info = self.create_publisher(CameraInfo, "rgb/camera_info", reliable)
+        self.pub_gt = self.create_publisher(PoseStamped, "ground_truth/pose", qos.events())
+        self.pub_clock = self.create_publisher(Clock, "/clock", 10)
+        self._posed = threading.Condition()
+        self._last_pose_ns = -1
+        self.n_published = 0
+        if self.opt.lockstep:
+            self.create_subscription(PoseStamped, "pose", self._on_pose, qos.stream())
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._play, name="bag-replay", daemon=True)
+        self._thread.start()
+        self.get_logger().info(f"neb_slam bag_replay started: {self.opt.bag}, frames {self.indices.start}.."
+                               f"{self.indices.stop - 1} of {n}, rate {self.opt.rate:g}, lockstep {self.opt.lockstep}")
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        with self._posed:
+            self._last_pose_ns = max(self._last_pose_ns, conversions.stamp_ns(msg))
+            self._posed.notify_all()
+
+    def _wait_for_pose(self, stamp_ns: int) -> None:
+        deadline = time.monotonic() + self.opt.lockstep_timeout_s
+        with self._posed:
+            while self._last_pose_ns < stamp_ns and not self._stop.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self.get_logger().warning(f"lockstep: no pose for frame {stamp_ns} within "
+                                              f"{self.opt.lockstep_timeout_s:g} s (skipped by the tracker?): going on")
+                    return
+                self._posed.wait(min(left, 0.5))
+
+    def _wait_for_subscribers(self) -> None:
+        """Frames published before the tracker subscribed would be lost: wait for it (discovery takes a
+        moment), up to ``wait_for_subscribers_s``."""
+        deadline = time.monotonic() + self.opt.wait_for_subscribers_s
+        pubs = (self.pub_rgb, self.pub_depth, self.pub_info)
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            if all(p.get_subscription_count() > 0 for p in pubs) and \
+                    (not self.opt.lockstep or self.count_publishers(self.resolve_topic_name("pose")) > 0):
+                return
+            self._stop.wait(0.1)
+        if not self._stop.is_set():
+            self.get_logger().warning(f"no tracker subscribed after {self.opt.wait_for_subscribers_s:g} s: "
+                                      "publishing anyway")
+
+    def _play(self) -> None:
+        try:
+            self._wait_for_subscribers()
+            while not self._stop.is_set():
+                self._play_once()
+                if not self.opt.loop:
+                    break
+            if not self._stop.is_set():
+                self.get_logger().info(f"neb_slam bag_replay finished: {self.n_published} frames published")
+                rclpy.try_shutdown(context=self.context)  # ends the process's spin: the replay is over
+        except Exception as exc:  # report, and end the process rather than hang
+            self.get_logger().error(f"bag_replay failed: {type(exc).__name__}: {exc}")
+            rclpy.try_shutdown(context=self.context)
+
+    def _play_once(self) -> None:
+        t0, stamp0 = time.monotonic(), None
+        camera, world = self.opt.camera_frame_id, self.opt.world_frame_id
+        for i in self.indices:
+            if self._stop.is_set():
+                return
+            frame = self.dataset[i]
+            ns = frame.stamp_ns
+            stamp0 = ns if stamp0 is None else stamp0
+            if self.opt.rate > 0:
+                delay = t0 + (ns - stamp0) * 1e-9 / self.opt.rate - time.monotonic()
+                if delay > 0:
+                    self._stop.wait(delay)
+            self.pub_clock.publish(Clock(clock=conversions.to_time(ns)))
+            if frame.T_world_cam is not None:
+                self.pub_gt.publish(conversions.pose_msg(frame.T_world_cam, ns, world))
+            self.pub_info.publish(conversions.camera_info_msg(frame.intrinsics, frame.extras.get("distortion"), ns, camera))
+            self.pub_depth.publish(conversions.depth_msg(frame.depth_m, ns, camera))
+            self.pub_rgb.publish(conversions.rgb_msg(frame.rgb, ns, camera))
+            self.n_published += 1
+            if self.opt.lockstep:
+                self._wait_for_pose(ns)
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._posed:
+            self._posed.notify_all()
+        self._thread.join(timeout=10)
+        self.dataset.close()
 
 
 def main(args: Sequence[str] | None = None) -> int:

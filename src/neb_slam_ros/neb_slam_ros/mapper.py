@@ -1,30 +1,297 @@
-"""``mapper``: the neural-block map: joint optimisation over keyframes, map updates and the mesh.
+"""``mapper``: the neural-block map, its joint optimisation with the keyframe poses, and the mesh.
 
-Placeholder: it starts, logs one line and spins; the real node is a later issue.
+Subscribes the tracker's keyframes (``keyframe/*``, assembled by stamp) and integrates them in order with the
+engine's :class:`~neb_slam_core.slam.Backend`: the first keyframe initialises the map, keyframes marked
+``map_now`` run a joint optimisation step. After each step it publishes ``map_update`` (the changed
+blocks, the decoders and the keyframe poses; layout in ``neb_slam_core/scene/map_update.py``). Every
+``mesh_period_s`` it publishes ``mesh`` (one TRIANGLE_LIST marker per block). Services ``save_mesh`` and
+``save_map`` write ``mesh.ply`` / ``map.pt`` into ``output_dir``; on shutdown (SIGINT, SIGTERM) it writes
+``map.pt``, ``mesh.ply``, ``trajectory.txt`` (every frame of the tracker's latest ``path``, each moved
+with the final pose of its keyframe) and ``config.yaml`` there.
 
 Example::
 
-    ros2 run neb_slam_ros mapper                  # after colcon build and sourcing install/setup.bash
-    python -m neb_slam_ros.mapper --ros-args -r __ns:=/robot1/neb_slam
+    ros2 run neb_slam_ros mapper --ros-args -p config:=tum -p output_dir:=runs/live
 """
 
 from __future__ import annotations
 
 import sys
+import threading
+import time
 from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
 
+import numpy as np
+import torch
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path as PathMsg
 from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String, UInt8MultiArray
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
-from neb_slam_ros import NAMESPACE
-from neb_slam_ros._node_main import run_node
+from neb_slam_core.geometry.se3 import invert
+from neb_slam_core.io.run_dir import MAP_FILE, TRAJECTORY_FILE, RunDirectory
+from neb_slam_core.io.trajectory import Trajectory
+from neb_slam_core.scene import map_update
+from neb_slam_core.scene.persistence import save_map
+from neb_slam_core.slam import Backend, new_block_map
+from neb_slam_ros import NAMESPACE, conversions, qos
+from neb_slam_ros._node_main import final_log, run_node
+from neb_slam_ros.keyframe_link import KeyframeAssembler, KeyframeMeta
+from neb_slam_ros.params import declare_config, declare_options, require
+
+
+@dataclass(frozen=True)
+class MapperOptions:
+    """The mapper's own parameters (the engine's come from the config)."""
+
+    output_dir: str = ""
+    mesh_period_s: float = 30.0
+    frame_id: str = "map"
+
+    PARAMETER_DOCS = {
+        "output_dir": "where save_mesh, save_map and the shutdown write; empty: runs/mapper-<date>-<time>",
+        "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
+        "frame_id": "frame of the published mesh",
+    }
+
+    def check(self) -> None:
+        require(self.mesh_period_s >= 0, "mesh_period_s", ">= 0", self.mesh_period_s)
+        require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
+
+
+def corrected_trajectory(path_stamps_ns: np.ndarray, path_poses: np.ndarray, keyframe_stamps_ns: np.ndarray,
+                         keyframe_poses: np.ndarray) -> Trajectory:
+    """Every frame of a tracker's path moved with the current pose of its keyframe.
+
+    The tracker keeps each frame relative to the latest keyframe at or before it, and a keyframe's own
+    entry in the path is that keyframe's pose as the tracker knew it, so ``T_kf_cam`` is read off the same
+    path: ``T = T_world_kf(now) @ inv(T_world_kf(path)) @ T_world_cam(path)``. Frames before the first
+    keyframe, or whose keyframe is missing from the path, keep their path pose.
+    """
+    stamps = np.asarray(path_stamps_ns, dtype=np.int64)
+    poses = np.array(path_poses, dtype=np.float64).reshape(-1, 4, 4)
+    out = poses.copy()
+    row_of = {int(s): i for i, s in enumerate(stamps)}
+    kf_stamps = np.asarray(keyframe_stamps_ns, dtype=np.int64)
+    owner = np.searchsorted(kf_stamps, stamps, side="right") - 1
+    for i, k in enumerate(owner):
+        if k < 0 or int(kf_stamps[k]) not in row_of:
+            continue
+        T_world_kf_then = poses[row_of[int(kf_stamps[k])]]
+        out[i] = keyframe_poses[k] @ invert(T_world_kf_then) @ poses[i]
+    return Trajectory(stamps, out)
 
 
 class MapperNode(Node):
-    """Placeholder; to come: optimise the block map from the tracker's keyframes, publish map_update and mesh."""
+    """Integrates keyframes and optimises the map; see the module docstring."""
 
     def __init__(self) -> None:
         super().__init__("mapper", namespace=NAMESPACE)
-        self.get_logger().info("neb_slam mapper started (placeholder: the real node is a later issue)")
+        self.cfg = declare_config(self)
+        self.opt = declare_options(self, MapperOptions)
+        self.out = Path(self.opt.output_dir or time.strftime("runs/mapper-%Y%m%d-%H%M%S"))
+        torch.manual_seed(self.cfg.seed)
+        self.block_map = new_block_map(self.cfg)
+        self.backend = Backend(self.cfg, self.block_map)
+        self._rng = np.random.default_rng(self.cfg.seed)
+        self._assembler = KeyframeAssembler()
+        self._cond = threading.Condition()
+        self._requests: list[tuple[str, threading.Event, list]] = []
+        self._stop = False
+        self._version = 0
+        self._unsent_blocks: set[int] = set()
+        self._path: tuple[np.ndarray, np.ndarray] | None = None
+        self._n_mapping_steps = 0
+        self._map_ms = 0.0
+
+        parts = {"rgb": Image, "depth": Image, "camera_info": CameraInfo, "pose": PoseStamped, "meta": String}
+        for part, kind in parts.items():
+            self.create_subscription(kind, f"keyframe/{part}", lambda m, p=part: self._on_part(p, m), qos.keyframes())
+        self.create_subscription(PathMsg, "path", self._on_path, qos.state())
+        self.pub_update = self.create_publisher(UInt8MultiArray, "map_update", qos.events(10))
+        self.pub_mesh = self.create_publisher(MarkerArray, "mesh", qos.state())
+        self.create_service(Trigger, "save_mesh", lambda req, res: self._serve("save_mesh", res))
+        self.create_service(Trigger, "save_map", lambda req, res: self._serve("save_map", res))
+        if self.opt.mesh_period_s > 0:
+            self.create_timer(self.opt.mesh_period_s, lambda: self._request("publish_mesh"))
+        self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
+        self._worker.start()
+        self.get_logger().info(f"neb_slam mapper started (config {self.get_parameter('config').value}, "
+                               f"output {self.out})")
+
+    # ------------------------------------------------------------------ callbacks (executor thread)
+
+    def _on_part(self, part: str, msg) -> None:
+        topic = self.resolve_topic_name(f"keyframe/{part}")
+        if part == "meta":
+            try:
+                meta = KeyframeMeta.from_json(msg.data)
+            except ValueError as exc:
+                self.get_logger().error(f"{topic}: {exc}: keyframe ignored")
+                return
+            stamp, value = meta.stamp_ns, meta
+        else:
+            stamp, value = conversions.stamp_ns(msg), msg
+        with self._cond:
+            self._assembler.add(part, stamp, value)
+            self._cond.notify_all()
+
+    def _on_path(self, msg: PathMsg) -> None:
+        stamps = np.array([conversions.stamp_ns(p) for p in msg.poses], dtype=np.int64)
+        poses = np.stack([conversions.pose_from_msg(p, "path") for p in msg.poses]) if msg.poses else np.zeros((0, 4, 4))
+        with self._cond:
+            self._path = (stamps, poses)
+
+    def _request(self, what: str) -> tuple[threading.Event, list]:
+        done, reply = threading.Event(), []
+        with self._cond:
+            self._requests.append((what, done, reply))
+            self._cond.notify_all()
+        return done, reply
+
+    def _serve(self, what: str, response: Trigger.Response) -> Trigger.Response:
+        done, reply = self._request(what)
+        done.wait(timeout=600)
+        response.success, response.message = (reply[0] if reply else (False, f"{what} timed out"))
+        return response
+
+    # ------------------------------------------------------------------ worker thread
+
+    def _work(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._stop or self._requests or self._assembler.has_ready, timeout=1.0)
+                if self._stop:
+                    return
+                ready = self._assembler.pop_ready()
+                # requests are served after the keyframes that arrived before them
+                requests, self._requests = self._requests, []
+            for parts in ready:
+                try:
+                    self._integrate(parts)
+                except Exception as exc:  # never let one keyframe kill the mapper
+                    self.get_logger().error(f"keyframe {parts['meta'].keyframe_id} failed: {type(exc).__name__}: {exc}")
+            for what, done, reply in requests:
+                if self._stop or not self.context.ok():
+                    reply.append((False, "the mapper is shutting down"))
+                    done.set()
+                    continue
+                try:
+                    reply.append((True, getattr(self, "_do_" + what)()))
+                except Exception as exc:
+                    reply.append((False, f"{type(exc).__name__}: {exc}"))
+                    self.get_logger().error(f"{what} failed: {type(exc).__name__}: {exc}")
+                done.set()
+
+    def _integrate(self, parts: dict) -> None:
+        meta: KeyframeMeta = parts["meta"]
+        for centre in meta.block_centres[len(self.block_map):]:
+            block = self.block_map.add_block(torch.as_tensor(centre, dtype=torch.float32))
+            self._unsent_blocks.add(block.block_id)
+        camera = conversions.camera_from_msg(parts["camera_info"], "keyframe/camera_info")
+        topics = ("keyframe/rgb", "keyframe/depth", "keyframe/camera_info")
+        frame, _ = conversions.frame_from_msgs(parts["rgb"], parts["depth"], camera, 1.0, topics, meta.frame_index)
+        step = self.backend.add_keyframe(frame, meta.T_world_cam, meta.frame_index, meta.map_now, meta.first)
+        if step.keyframe.keyframe_id != meta.keyframe_id:
+            self.get_logger().error(f"keyframe ids diverged: tracker {meta.keyframe_id}, mapper "
+                                    f"{step.keyframe.keyframe_id}")
+        self.get_logger().debug(f"keyframe {meta.keyframe_id} (frame {meta.frame_index}) integrated"
+                                + (f", mapped in {step.map_ms:.0f} ms" if step.mapped else ""))
+        if step.mapped:
+            self._n_mapping_steps += 1
+            self._map_ms += step.map_ms
+            self._publish_update(step.changed_block_ids | self._unsent_blocks, meta.stamp_ns)
+            self._unsent_blocks.clear()
+
+    def _publish_update(self, block_ids, ack_stamp_ns: int) -> None:
+        kfs = self.backend.keyframes
+        self._version += 1
+        data = map_update.encode(self.block_map, block_ids, self._version, ack_stamp_ns,
+                                 [kf.stamp_ns for kf in kfs.keyframes], kfs.poses())
+        self.pub_update.publish(UInt8MultiArray(data=data))
+
+    # ------------------------------------------------------------------ outputs (worker thread)
+
+    def _mesh(self):
+        from neb_slam_core.mesh import extract_mesh
+
+        if len(self.block_map) == 0:
+            raise RuntimeError("the map has no blocks yet")
+        return extract_mesh(self.block_map, self.cfg.mesh, self.backend.observed_points(self._rng))
+
+    def _do_publish_mesh(self) -> str:
+        if len(self.backend.keyframes) == 0:
+            return "no keyframe yet"
+        mesh = self._mesh()
+        self.pub_mesh.publish(conversions.mesh_markers(self._split_by_block(mesh), time.time_ns(), self.opt.frame_id))
+        return f"{len(mesh.faces)} faces"
+
+    def _split_by_block(self, mesh) -> dict[int, tuple]:
+        verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        colours = np.asarray(mesh.visual.vertex_colors)[:, :3] if len(verts) else np.zeros((0, 3), np.uint8)
+        if len(faces) == 0:
+            return {}
+        centroids = torch.as_tensor(verts[faces].mean(axis=1), dtype=torch.float32)
+        inside = self.block_map.contains(centroids)
+        owner = torch.where(inside.any(dim=1), inside.float().argmax(dim=1), -1).numpy()
+        return {int(b): (verts, faces[owner == b], colours) for b in np.unique(owner) if b >= 0}
+
+    def _run_dir(self) -> RunDirectory:
+        self.out.mkdir(parents=True, exist_ok=True)
+        return RunDirectory(self.out)
+
+    def _do_save_mesh(self) -> str:
+        path = self._run_dir().write_mesh(self._mesh())
+        return str(path)
+
+    def _do_save_map(self) -> str:
+        kfs = self.backend.keyframes
+        extra = {"keyframe_poses": torch.from_numpy(kfs.poses() if len(kfs) else np.zeros((0, 4, 4))),
+                 "keyframe_stamps_ns": [int(kf.stamp_ns) for kf in kfs.keyframes],
+                 "keyframe_frame_indices": [int(kf.frame_index) for kf in kfs.keyframes]}
+        return str(save_map(self.block_map, self._run_dir().file(MAP_FILE), extra=extra))
+
+    def trajectory(self) -> Trajectory:
+        kfs = self.backend.keyframes
+        kf_stamps = np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64)
+        kf_poses = kfs.poses() if len(kfs) else np.zeros((0, 4, 4))
+        with self._cond:
+            path = self._path
+        if path is None:
+            return Trajectory(kf_stamps, kf_poses)
+        return corrected_trajectory(path[0], path[1], kf_stamps, kf_poses)
+
+    # ------------------------------------------------------------------ shutdown
+
+    def close(self) -> None:
+        """Finish the keyframes already received, then write map, mesh, trajectory and config."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._worker.join(timeout=600)
+        while self._assembler.has_ready:  # keyframes that arrived before the stop
+            self._integrate(self._assembler.pop_ready()[0])
+        if len(self.backend.keyframes) == 0:
+            final_log(self, "neb_slam mapper stopped before any keyframe: nothing to write", "WARN")
+            return
+        run_dir = self._run_dir()
+        run_dir.write_config(self.cfg)
+        written = [self._do_save_map()]
+        traj = self.trajectory()
+        written.append(str(run_dir.write_trajectory(traj, TRAJECTORY_FILE,
+                                                    f"neb_slam mapper: {len(traj)} frames, T_world_cam")))
+        try:
+            written.append(self._do_save_mesh())
+        except Exception as exc:
+            final_log(self, f"mesh not written: {type(exc).__name__}: {exc}", "WARN")
+        final_log(self, f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} blocks, "
+                 f"{self._n_mapping_steps} mapping steps ({self._map_ms / max(self._n_mapping_steps, 1):.0f} ms each); "
+                 f"wrote {', '.join(Path(w).name for w in written)} to {self.out}")
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -1,0 +1,160 @@
+"""The map update: the part of a block map that a mapping step changed, as one versioned byte string.
+
+The mapper sends it (ROS topic ``map_update``, std_msgs/UInt8MultiArray) to trackers that hold a copy of
+the map: the hash tables of the blocks it changed, all decoder parameters, and the current poses of all
+keyframes (mapping refines them). Applying every update in order reproduces the mapper's map exactly
+(float32 tables and decoders, float64 poses: no rounding on the way).
+
+Binary layout, version 1, little-endian, no padding::
+
+    header (44 bytes)
+      char[4]  magic            b"NEBU"
+      uint16   format           1
+      uint16   reserved         0
+      uint64   version          update counter of the sender, 1, 2, 3, ... (receivers drop old ones)
+      int64    ack_stamp_ns     stamp of the newest keyframe the map has integrated (-1: none)
+      uint32   n_blocks         B, blocks in this update
+      uint32   table_numel      float32 values per block table (L * T * F of the block config)
+      uint32   n_decoder        float32 values of all decoder parameters
+      uint32   n_keyframes      K
+      uint32   header_bytes     44 (readers skip to here: later versions may append fields)
+    B times
+      uint32   block_id
+      float32  centre_world[3]  metres
+      float32  table[table_numel]   the block's hash table, row-major (entries, features)
+    float32  decoders[n_decoder]    parameters in ``Decoders.parameters()`` order, each row-major
+    int64    keyframe_stamps_ns[K]
+    float64  keyframe_poses[K][4][4]   T_world_cam of keyframes 0..K-1, row-major
+
+Block ids are dense (0, 1, 2, ...): a receiver that does not have block ``id`` yet creates it, and it
+must then have every lower id already.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import NebSlamError
+from .block_map import BlockMap
+
+MAGIC = b"NEBU"
+FORMAT_VERSION = 1
+_HEADER = struct.Struct("<4sHHQqIIIII")
+_BLOCK_HEAD = struct.Struct("<I3f")
+
+
+class MapUpdateError(NebSlamError):
+    """A map update is malformed or does not fit the receiving map."""
+
+
+@dataclass
+class BlockState:
+    """One block's identity and parameters: ``table`` is float32 ``(table_numel,)``."""
+
+    block_id: int
+    centre_world: np.ndarray
+    table: np.ndarray
+
+
+@dataclass
+class MapUpdate:
+    """A decoded update (see the module docstring for the meaning of each field)."""
+
+    version: int
+    ack_stamp_ns: int
+    blocks: list[BlockState]
+    decoders: np.ndarray
+    keyframe_stamps_ns: np.ndarray
+    keyframe_poses: np.ndarray
+
+    @property
+    def block_ids(self) -> list[int]:
+        return [b.block_id for b in self.blocks]
+
+
+def encode(block_map: BlockMap, block_ids, version: int, ack_stamp_ns: int, keyframe_stamps_ns,
+           keyframe_poses) -> bytes:
+    """The update carrying blocks ``block_ids`` of ``block_map``, its decoders and the keyframe poses
+    ``(K, 4, 4)`` with their stamps ``(K,)``."""
+    ids = sorted(int(i) for i in block_ids)
+    stamps = np.ascontiguousarray(keyframe_stamps_ns, dtype="<i8").reshape(-1)
+    poses = np.ascontiguousarray(keyframe_poses, dtype="<f8").reshape(-1, 4, 4)
+    if len(stamps) != len(poses):
+        raise ValueError(f"{len(stamps)} keyframe stamps for {len(poses)} poses")
+    decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().numpy()
+    table_numel = block_map.blocks[0].grid.table.numel() if len(block_map) else 0
+    parts = [_HEADER.pack(MAGIC, FORMAT_VERSION, 0, version, ack_stamp_ns, len(ids), table_numel,
+                          decoders.size, len(stamps), _HEADER.size)]
+    for i in ids:
+        block = block_map.blocks[i]
+        centre = block.centre.detach().cpu().numpy()
+        parts.append(_BLOCK_HEAD.pack(i, *map(float, centre)))
+        parts.append(block.grid.table.detach().cpu().numpy().astype("<f4", copy=False).tobytes())
+    parts += [decoders.astype("<f4", copy=False).tobytes(), stamps.tobytes(), poses.tobytes()]
+    return b"".join(parts)
+
+
+def decode(data) -> MapUpdate:
+    """Parse an update (bytes, bytearray, memoryview or array of uint8); the arrays view ``data``."""
+    buf = memoryview(data).cast("B")
+    if len(buf) < _HEADER.size:
+        raise MapUpdateError(f"map update of {len(buf)} bytes is shorter than its {_HEADER.size}-byte header")
+    magic, fmt, _, version, ack, n_blocks, table_numel, n_decoder, n_kf, header_bytes = _HEADER.unpack_from(buf)
+    if magic != MAGIC:
+        raise MapUpdateError(f"not a map update: magic {bytes(magic)!r}, expected {MAGIC!r}")
+    if fmt != FORMAT_VERSION:
+        raise MapUpdateError(f"map update format {fmt} is not supported (this software reads {FORMAT_VERSION})")
+    block_bytes = _BLOCK_HEAD.size + 4 * table_numel
+    expected = header_bytes + n_blocks * block_bytes + 4 * n_decoder + 8 * n_kf + 128 * n_kf
+    if len(buf) != expected:
+        raise MapUpdateError(f"map update of {len(buf)} bytes, its header announces {expected} "
+                             f"({n_blocks} blocks of {table_numel} values, {n_decoder} decoder values, "
+                             f"{n_kf} keyframes)")
+    offset = header_bytes
+    blocks = []
+    for _ in range(n_blocks):
+        block_id, cx, cy, cz = _BLOCK_HEAD.unpack_from(buf, offset)
+        offset += _BLOCK_HEAD.size
+        table = np.frombuffer(buf, "<f4", table_numel, offset)
+        offset += 4 * table_numel
+        blocks.append(BlockState(block_id, np.array([cx, cy, cz], dtype=np.float32), table))
+    decoders = np.frombuffer(buf, "<f4", n_decoder, offset)
+    offset += 4 * n_decoder
+    stamps = np.frombuffer(buf, "<i8", n_kf, offset)
+    offset += 8 * n_kf
+    poses = np.frombuffer(buf, "<f8", 16 * n_kf, offset).reshape(n_kf, 4, 4)
+    return MapUpdate(version, ack, blocks, decoders, stamps, poses)
+
+
+def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:
+    """Write the update's blocks (creating new ones) and decoders into ``block_map``; returns the ids of
+    the blocks it created. Keyframe poses are the caller's (they belong to its pose bookkeeping)."""
+    n_decoder = sum(p.numel() for p in block_map.decoders.parameters())
+    if update.decoders.size != n_decoder:
+        raise MapUpdateError(f"map update has {update.decoders.size} decoder values, this map's decoders have "
+                             f"{n_decoder} (different decoder config?)")
+    created = []
+    for state in sorted(update.blocks, key=lambda b: b.block_id):
+        if state.block_id > len(block_map):
+            raise MapUpdateError(f"map update has block {state.block_id}, but this map has only "
+                                 f"{len(block_map)} blocks (an update was lost)")
+        if state.block_id == len(block_map):
+            block_map.add_block(torch.from_numpy(state.centre_world.copy()))
+            created.append(state.block_id)
+        block = block_map.blocks[state.block_id]
+        if not np.allclose(block.centre.detach().cpu().numpy(), state.centre_world, atol=1e-6):
+            raise MapUpdateError(f"map update moves block {state.block_id} from {block.centre.tolist()} to "
+                                 f"{state.centre_world.tolist()}: the maps diverged")
+        if state.table.size != block.grid.table.numel():
+            raise MapUpdateError(f"map update block {state.block_id} has {state.table.size} table values, this "
+                                 f"map's blocks have {block.grid.table.numel()} (different grid config?)")
+        with torch.no_grad():
+            block.grid.table.copy_(torch.from_numpy(state.table.copy()).view_as(block.grid.table))
+    with torch.no_grad():
+        vec = torch.from_numpy(update.decoders.copy()).to(block_map.device)
+        torch.nn.utils.vector_to_parameters(vec, block_map.decoders.parameters())
+    return created

@@ -1,0 +1,92 @@
+"""The keyframe hand-over between the tracker and the mapper: what travels, and its assembly by stamp.
+
+A keyframe is five messages with the same stamp: ``keyframe/rgb`` (rgb8), ``keyframe/depth`` (32FC1 metres,
+exact), ``keyframe/camera_info`` (the rectified camera: no distortion), ``keyframe/pose`` (PoseStamped)
+and ``keyframe/meta`` (std_msgs/String, JSON) with what the standard messages cannot carry:
+
+    {"stamp_ns": int, "frame_index": int, "keyframe_id": int, "map_now": bool, "first": bool,
+     "T_world_cam": [16 floats, row-major, exact], "block_centres": [[x, y, z], ...]}
+
+``block_centres`` lists every block the tracker has allocated so far (ids are positions), so a mapper
+creates the same blocks before it integrates the keyframe, whatever order the topics arrive in.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+
+KEYFRAME_PARTS = ("rgb", "depth", "camera_info", "pose", "meta")
+
+
+@dataclass
+class KeyframeMeta:
+    stamp_ns: int
+    frame_index: int
+    keyframe_id: int
+    map_now: bool
+    first: bool
+    T_world_cam: np.ndarray
+    block_centres: np.ndarray
+
+    def to_json(self) -> str:
+        return json.dumps({"stamp_ns": self.stamp_ns, "frame_index": self.frame_index, "keyframe_id": self.keyframe_id,
+                           "map_now": self.map_now, "first": self.first,
+                           "T_world_cam": [float(v) for v in np.asarray(self.T_world_cam).reshape(-1)],
+                           "block_centres": np.asarray(self.block_centres, dtype=np.float64).reshape(-1, 3).tolist()})
+
+    @classmethod
+    def from_json(cls, text: str) -> "KeyframeMeta":
+        """Parse; raises ValueError naming the field that is missing or wrong."""
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"not JSON: {exc}") from None
+        try:
+            T = np.array(d["T_world_cam"], dtype=np.float64).reshape(4, 4)
+            centres = np.array(d["block_centres"], dtype=np.float64).reshape(-1, 3)
+            return cls(int(d["stamp_ns"]), int(d["frame_index"]), int(d["keyframe_id"]), bool(d["map_now"]),
+                       bool(d["first"]), T, centres)
+        except KeyError as exc:
+            raise ValueError(f"field {exc.args[0]!r} is missing") from None
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"a field has the wrong type or shape: {exc}") from None
+
+
+class KeyframeAssembler:
+    """Collects the five parts of each keyframe by stamp and hands out complete keyframes in keyframe-id
+    order (a keyframe whose predecessor is still incomplete waits for it)."""
+
+    def __init__(self, capacity: int = 200):
+        self.capacity = capacity
+        self._parts: dict[int, dict[str, object]] = {}
+        self._complete: dict[int, dict[str, object]] = {}  # keyframe id -> parts
+        self.next_id = 0
+
+    def add(self, part: str, stamp_ns: int, value) -> None:
+        parts = self._parts.setdefault(stamp_ns, {})
+        parts[part] = value
+        if len(parts) == len(KEYFRAME_PARTS):
+            del self._parts[stamp_ns]
+            self._complete[parts["meta"].keyframe_id] = parts
+        while len(self._parts) > self.capacity:  # parts whose siblings never came
+            del self._parts[min(self._parts)]
+
+    def pop_ready(self) -> list[dict[str, object]]:
+        """Complete keyframes that are next in order."""
+        out = []
+        while self.next_id in self._complete:
+            out.append(self._complete.pop(self.next_id))
+            self.next_id += 1
+        return out
+
+    @property
+    def has_ready(self) -> bool:
+        """The next keyframe in order is complete."""
+        return self.next_id in self._complete
+
+    @property
+    def n_waiting(self) -> int:
+        return len(self._parts) + len(self._complete)

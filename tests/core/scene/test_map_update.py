@@ -1,0 +1,108 @@
+"""The map update byte layout: round trip, exact reproduction of the sender's map, and clear errors."""
+
+import struct
+
+import numpy as np
+import pytest
+import torch
+
+from neb_slam_core.config import BlockConfig, HashGridConfig
+from neb_slam_core.scene import map_update
+from neb_slam_core.scene.block_map import BlockMap
+from neb_slam_core.scene.map_update import MapUpdateError
+
+SMALL_GRID = HashGridConfig(n_levels=2, n_features_per_level=2, log2_hashmap_size=4, base_resolution=2,
+                            max_resolution=4, init_scale=0.1)
+
+
+def make_map(seed: int = 3) -> BlockMap:
+    return BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID), grid_backend="reference", seed=seed)
+
+
+def trained(seed: int = 3) -> BlockMap:
+    """A sender's map with three blocks whose tables and decoders differ from their initial values."""
+    m = make_map(seed)
+    for c in ([0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [4.0, 4.0, -1.0]):
+        m.add_block(c)
+    g = torch.Generator().manual_seed(7)
+    with torch.no_grad():
+        for b in m.blocks:
+            b.grid.table.copy_(torch.rand(b.grid.table.shape, generator=g))
+        for p in m.decoders.parameters():
+            p.copy_(torch.rand(p.shape, generator=g))
+    return m
+
+
+def test_layout_sizes_are_the_documented_ones():
+    m = trained()
+    poses = np.stack([np.eye(4)] * 2)
+    data = map_update.encode(m, [2, 0], version=5, ack_stamp_ns=123, keyframe_stamps_ns=[10, 20], keyframe_poses=poses)
+    table_numel = m.blocks[0].grid.table.numel()
+    n_decoder = sum(p.numel() for p in m.decoders.parameters())
+    assert len(data) == 44 + 2 * (16 + 4 * table_numel) + 4 * n_decoder + 2 * 8 + 2 * 128
+    assert data[:4] == b"NEBU"
+    assert struct.unpack_from("<HHQq", data, 4) == (1, 0, 5, 123)
+    # the first block record is block 0 (ids are sorted), its centre follows its id
+    assert struct.unpack_from("<I3f", data, 44) == (0, 0.0, 0.0, 0.0)
+
+
+def test_applying_updates_reproduces_the_senders_map_exactly():
+    sender = trained()
+    poses = np.stack([np.eye(4), np.diag([1.0, -1.0, -1.0, 1.0])])
+    poses[1, :3, 3] = [0.1234567891234, -2.0, 3.5]
+    receiver = make_map(seed=99)  # different initial decoders: the update must overwrite them all
+    receiver.add_block([0.0, 0.0, 0.0])
+    update = map_update.decode(map_update.encode(sender, [1, 2], 2, 555, [7, 9], poses))
+    assert update.version == 2 and update.ack_stamp_ns == 555 and update.block_ids == [1, 2]
+    assert map_update.apply(update, receiver) == [1, 2]
+    np.testing.assert_array_equal(update.keyframe_poses, poses)  # float64, bit-exact
+    assert update.keyframe_stamps_ns.tolist() == [7, 9]
+    for i in (1, 2):
+        assert torch.equal(receiver.blocks[i].grid.table, sender.blocks[i].grid.table)
+        assert torch.equal(receiver.blocks[i].centre, sender.blocks[i].centre)
+    for a, b in zip(receiver.decoders.parameters(), sender.decoders.parameters()):
+        assert torch.equal(a, b)
+    # block 0 was not in the update: the receiver's own table is untouched
+    assert not torch.equal(receiver.blocks[0].grid.table, sender.blocks[0].grid.table)
+    pts = torch.tensor([[4.5, 0.2, -0.3], [4.0, 4.0, -1.0]])
+    assert torch.equal(receiver.query(pts, [1, 2]).sdf, sender.query(pts, [1, 2]).sdf)
+
+
+def test_decode_accepts_the_buffer_types_of_ros_messages():
+    import array
+
+    data = map_update.encode(trained(), [0], 1, -1, [], np.zeros((0, 4, 4)))
+    for buf in (bytearray(data), array.array("B", data), memoryview(data)):
+        u = map_update.decode(buf)
+        assert u.block_ids == [0] and len(u.keyframe_poses) == 0 and u.ack_stamp_ns == -1
+
+
+def test_bad_updates_are_refused_with_what_is_wrong():
+    sender = trained()
+    data = map_update.encode(sender, [0, 1, 2], 1, 0, [], np.zeros((0, 4, 4)))
+    with pytest.raises(MapUpdateError, match="magic"):
+        map_update.decode(b"XXXX" + data[4:])
+    with pytest.raises(MapUpdateError, match="header announces"):
+        map_update.decode(data[:-4])
+    with pytest.raises(MapUpdateError, match="shorter than"):
+        map_update.decode(data[:10])
+    with pytest.raises(MapUpdateError, match="format 9"):
+        map_update.decode(data[:4] + struct.pack("<H", 9) + data[6:])
+    # a receiver with no blocks cannot take block 1 before block 0 (a lost update)
+    only_later = map_update.decode(map_update.encode(sender, [1], 1, 0, [], np.zeros((0, 4, 4))))
+    with pytest.raises(MapUpdateError, match="an update was lost"):
+        map_update.apply(only_later, make_map())
+    # a receiver whose block 0 sits elsewhere has diverged from the sender
+    other = make_map()
+    other.add_block([1.0, 0.0, 0.0])
+    with pytest.raises(MapUpdateError, match="diverged"):
+        map_update.apply(map_update.decode(data), other)
+    # a receiver with another grid size
+    finer = BlockMap(BlockConfig(edge_m=5.0, grid=HashGridConfig(n_levels=2, log2_hashmap_size=6, base_resolution=2,
+                                                                 max_resolution=4)), grid_backend="reference", seed=3)
+    with pytest.raises(MapUpdateError, match="grid config"):
+        map_update.apply(map_update.decode(data), finer)
+    wider = BlockMap(BlockConfig(edge_m=5.0, grid=HashGridConfig(n_levels=3, log2_hashmap_size=4, base_resolution=2,
+                                                                 max_resolution=4)), grid_backend="reference")
+    with pytest.raises(MapUpdateError, match="decoder config"):
+        map_update.apply(map_update.decode(data), wider)

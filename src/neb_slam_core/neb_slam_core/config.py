@@ -272,6 +272,48 @@ class MappingConfig:
 
 
 @dataclass(frozen=True)
+class LoopConfig:
+    """Loop closure: bag-of-words place recognition over keyframes (paper, "Loop Closure").
+
+    A new keyframe's ORB features (``n_features`` per image, pyramid ``orb_scale_factor`` x
+    ``orb_levels``, FAST threshold ``fast_threshold``; images narrower than ``min_image_width_px`` are
+    upsampled first) become a TF-IDF vector of the vocabulary ``vocabulary`` ("" = the one shipped in
+    ``neb_slam_core/loop/data``). The database returns the ``top_k`` best keyframes outside the
+    ``temporal_window`` keyframes before and after the query (the paper's "not adjacent"); those
+    scoring at least the lowest similarity of the query to its ``neighbours`` nearest keyframes on each
+    side (the paper's threshold) and passing the geometric check are accepted, and of them the
+    ``n_loop_keyframes`` (paper: 2) are taken: the highest score, then the largest time gap.
+
+    Geometric check: ORB matches (Hamming distance at most ``max_match_distance`` bits, nearest below
+    ``match_ratio`` times the second nearest), the candidate's matched keypoints back-projected with its
+    depth, the relative pose by PnP RANSAC (``ransac_iterations``, inlier reprojection error
+    ``reprojection_error_px``), refined with the query's own depth as well, and its inliers counted: a
+    match reprojecting within ``reprojection_error_px`` whose two 3D points agree within
+    ``max_point_error_m`` (times the depth beyond 1 m). Accepted with at least ``min_inliers`` inliers
+    that are at least ``min_inlier_ratio`` of the matches with depth in both frames.
+    """
+
+    enabled: bool = True
+    vocabulary: str = ""
+    n_features: int = 1000
+    orb_scale_factor: float = 1.2
+    orb_levels: int = 8
+    fast_threshold: int = 20
+    min_image_width_px: int = 320
+    top_k: int = 10
+    temporal_window: int = 10
+    neighbours: int = 3
+    n_loop_keyframes: int = 2
+    match_ratio: float = 0.8
+    max_match_distance: int = 64
+    ransac_iterations: int = 200
+    reprojection_error_px: float = 3.0
+    max_point_error_m: float = 0.015
+    min_inliers: int = 30
+    min_inlier_ratio: float = 0.2
+
+
+@dataclass(frozen=True)
 class SlamConfig:
     """The whole engine's configuration; each component receives only its own part."""
 
@@ -286,3 +328,4 @@ class SlamConfig:
     grid_backend: str = "auto"
     device: str = "cpu"
     seed: int = 0
+    loop: LoopConfig = LoopConfig()

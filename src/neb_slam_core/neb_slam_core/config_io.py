@@ -426,6 +426,24 @@ RULES: dict[str, Any] = {
     "grid_backend": _Choice(GRID_BACKENDS),
     "device": _Pattern(_DEVICE, "cpu, cuda or cuda:N"),
     "seed": _COUNT,
+    "loop.enabled": _Bool(),
+    "loop.vocabulary": _Pattern(re.compile(r"[^\x00]*"), "'' (the shipped vocabulary) or a file path"),
+    "loop.n_features": _Int(10),
+    "loop.orb_scale_factor": _Num(1.0, 2.0, lo_open=True, hi_open=False),
+    "loop.orb_levels": _Int(1, 16),
+    "loop.fast_threshold": _Int(1, 255),
+    "loop.min_image_width_px": _COUNT,
+    "loop.top_k": _POSITIVE_INT,
+    "loop.temporal_window": _COUNT,
+    "loop.neighbours": _POSITIVE_INT,
+    "loop.n_loop_keyframes": _Int(1, 2),
+    "loop.match_ratio": _Num(0.0, 1.0, lo_open=True, hi_open=False),
+    "loop.max_match_distance": _Int(0, 256),
+    "loop.ransac_iterations": _POSITIVE_INT,
+    "loop.reprojection_error_px": _POSITIVE,
+    "loop.max_point_error_m": _POSITIVE,
+    "loop.min_inliers": _Int(4),
+    "loop.min_inlier_ratio": _Num(0.0, 1.0, lo_open=False, hi_open=False),
 }
 
 
@@ -484,6 +502,8 @@ def config_problems(cfg: SlamConfig) -> list[ConfigProblem]:
     need("tracking.min_valid_rays", ("tracking.n_rays",),
          lambda: cfg.tracking.min_valid_rays <= cfg.tracking.n_rays,
          f"<= tracking.n_rays ({cfg.tracking.n_rays}), or every frame would fail tracking")
+    need("loop.neighbours", ("loop.temporal_window",), lambda: cfg.loop.neighbours <= cfg.loop.temporal_window,
+         f"<= loop.temporal_window ({cfg.loop.temporal_window}): the neighbours that set the threshold are adjacent keyframes")
     if cfg.grid_backend == "fast" and "block.grid.n_features_per_level" not in bad:
         from .scene.hash_grid import FAST_FEATURE_COUNTS  # imports torch: only when it matters
 

@@ -24,3 +24,7 @@ class DatasetError(NebSlamError):
 
 class ConfigError(NebSlamError):
     """A configuration value is missing, of the wrong type or out of range."""
+
+
+class VocabularyError(DatasetError):
+    """A bag-of-words vocabulary file is missing, malformed or of another format version."""

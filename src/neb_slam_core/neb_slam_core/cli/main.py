@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "info": "info",
     "eval": "evaluate",
     "run": "run",
+    "vocab": "vocab",
 }
 
 

@@ -1,0 +1,174 @@
+"""Loop detector: the paper's query rule and the geometric check, on a small synthetic loop and on TUM."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from neb_slam_core.config import LoopConfig
+from neb_slam_core.geometry.se3 import invert, make_pose
+from neb_slam_core.loop.detector import LoopDetector, backproject, keypoint_depths, match_descriptors
+from neb_slam_core.loop.vocabulary import Vocabulary, l1_score
+from neb_slam_core.types import Intrinsics
+
+#: frames of the 'default' synthetic preset (160x120, 300 frames, the route returns to its start) used
+#: as keyframes: the start of the loop, a stretch far from it, and its end, which sees the start again
+LOOP_FRAMES = (0, 10, 20, 30, 40, 150, 160, 270, 280, 290)
+FRAME_NS = 33_333_333
+
+
+def pose_error(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
+    E = invert(T_gt) @ T_est
+    return (float(np.linalg.norm(E[:3, 3])),
+            float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)))))
+
+
+@pytest.fixture(scope="module")
+def vocabulary() -> Vocabulary:
+    return Vocabulary.load("")
+
+
+@pytest.fixture(scope="module")
+def loop_views():
+    """Rendered views and ground-truth poses of :data:`LOOP_FRAMES` (about 1.5 s)."""
+    from neb_slam_core.synth.generate import build_sequence, resolve_spec
+    from neb_slam_core.synth.render import Renderer
+
+    spec = resolve_spec("default")
+    seq = build_sequence(spec)
+    intr = spec.camera.intrinsics()
+    renderer = Renderer.for_scene(seq.scene, intr)
+    poses = seq.trajectory.poses
+    return {f: (renderer.render(poses[f]), poses[f]) for f in LOOP_FRAMES}, intr
+
+
+@pytest.fixture(scope="module")
+def loop_detector(vocabulary, loop_views):
+    views, intr = loop_views
+    cfg = LoopConfig(temporal_window=2, neighbours=1)
+    det = LoopDetector(cfg, vocabulary)
+    for i, f in enumerate(LOOP_FRAMES):
+        det.add_keyframe(i, f * FRAME_NS, views[f][0].rgb, views[f][0].depth_m, intr)
+    return det
+
+
+def test_a_keyframe_matched_to_itself_scores_one(loop_detector):
+    kf = loop_detector.keyframe(3)
+    assert len(kf.features) > 200 and len(kf.bow) > 100
+    assert l1_score(kf.bow, kf.bow) == pytest.approx(1.0)
+    assert loop_detector.database.query(kf.bow).keyframe_ids[0] == 3
+
+
+def test_the_end_of_the_loop_finds_its_start_with_the_right_relative_pose(loop_detector, loop_views):
+    views, _ = loop_views
+    q = loop_detector.query(len(LOOP_FRAMES) - 1)               # frame 290, next to frame 0 again
+    assert q.detection is not None
+    loop_ids = [c.keyframe_id for c in q.detection.loop_keyframes]
+    assert 1 <= len(loop_ids) <= 2 and all(LOOP_FRAMES[i] <= 40 for i in loop_ids)
+    for c in q.detection.loop_keyframes:
+        T_gt = invert(views[LOOP_FRAMES[c.keyframe_id]][1]) @ views[290][1]
+        err_m, err_deg = pose_error(c.T_cand_query, T_gt)
+        assert err_m < 0.05 and err_deg < 2.0, (c.keyframe_id, err_m, err_deg)
+        assert c.n_inliers >= loop_detector.cfg.min_inliers and c.score >= q.threshold
+
+
+def test_the_papers_rule_threshold_window_and_choice_of_two(loop_detector):
+    det, n = loop_detector, len(LOOP_FRAMES)
+    n_pairs = 0
+    for p in range(n):
+        q = det.query(p)
+        # threshold: the lowest similarity to the nearest keyframe on each side (neighbours = 1)
+        kf = det.keyframe(p)
+        side = [det.keyframe(i).bow for i in (p - 1, p + 1) if 0 <= i < n]
+        assert q.threshold == pytest.approx(min(l1_score(kf.bow, b) for b in side))
+        # candidates: never within the temporal window (2), best first, at most top_k
+        assert all(abs(int(c) - p) > 2 for c in q.candidate_ids)
+        assert len(q.candidate_ids) <= det.cfg.top_k and np.all(np.diff(q.candidate_scores) <= 0)
+        # checked: exactly the candidates at or above the threshold
+        assert [c for c, _ in q.checks] == [int(c) for c, s in zip(q.candidate_ids, q.candidate_scores)
+                                            if s >= q.threshold]
+        verified = [c for c, check in q.checks if check.accepted]
+        if q.detection is None:
+            assert not verified
+            continue
+        r = q.detection.loop_keyframes
+        assert r[0].keyframe_id == verified[0]                  # r1: the highest score
+        if len(verified) > 1:                                   # r2: the largest time gap of the others
+            gaps = {c: abs(det.keyframe(c).stamp_ns - kf.stamp_ns) for c in verified[1:]}
+            assert len(r) == 2 and gaps[r[1].keyframe_id] == max(gaps.values())
+            n_pairs += 1
+    assert n_pairs >= 1  # the rule for r2 was exercised (frame 270: r1 = frame 0, r2 = frame 10)
+
+
+def test_the_first_keyframe_has_no_neighbour_and_no_query(vocabulary, loop_views):
+    views, intr = loop_views
+    det = LoopDetector(LoopConfig(), vocabulary)
+    det.add_keyframe(7, 0, views[0][0].rgb, views[0][0].depth_m, intr)
+    q = det.query(7)
+    assert np.isnan(q.threshold) and q.detection is None and len(q.candidate_ids) == 0
+
+
+def test_the_geometric_check_rejects_a_pair_that_does_not_overlap(loop_detector):
+    start, far = loop_detector.keyframe(0), loop_detector.keyframe(LOOP_FRAMES.index(150))
+    check = loop_detector.verify(far, start)
+    assert not check.accepted and check.n_inliers < loop_detector.cfg.min_inliers and check.reason
+
+
+def test_the_geometric_check_rejects_a_look_alike_with_wrong_geometry(loop_detector):
+    """The same image over a world 0.6 times as deep (like a photograph of the place): the BoW score is
+    1 and the pixels match perfectly, but no rigid motion explains both depths."""
+    kf = loop_detector.keyframe(0)
+    fake = replace(kf, keyframe_id=99, keypoint_depth_m=0.6 * kf.keypoint_depth_m)
+    assert l1_score(kf.bow, fake.bow) == pytest.approx(1.0)
+    assert not loop_detector.verify(kf, fake).accepted
+    assert loop_detector.verify(kf, kf).accepted                # the unscrambled one passes
+
+
+def test_keypoint_depths_drop_edges_and_holes():
+    depth = np.full((10, 10), 2.0, np.float32)
+    depth[:, 6:] = 4.0            # an occlusion edge between columns 5 and 6
+    depth[8, 1] = 0.0             # a hole
+    kp = np.array([[2.0, 2.0], [5.0, 5.0], [8.0, 5.0], [1.0, 7.0], [2.4, 3.6]], np.float32)
+    assert keypoint_depths(depth, kp).tolist() == [2.0, 0.0, 4.0, 0.0, 2.0]
+
+
+def test_backproject_and_match_descriptors_by_hand():
+    k = Intrinsics(100.0, 100.0, 50.0, 40.0, 100, 80)
+    pts = backproject(np.array([[50.0, 40.0], [150.0, 40.0]]), np.array([2.0, 1.0]), k)
+    assert pts.tolist() == [[0.0, 0.0, 2.0], [1.0, 0.0, 1.0]]
+    train = np.zeros((3, 32), np.uint8)
+    train[1, :4] = 0xFF           # 32 bits from train 0
+    train[2, :8] = 0xFF           # 64 bits from train 0
+    query = train[[1, 0, 2, 0]].copy()
+    query[2, 0] ^= 0x01           # 1 bit from train 2, 63 from train 0 -> passes the ratio test
+    qi, ti = match_descriptors(query, train, ratio=0.8, max_distance=64)
+    # query 3 duplicates query 1 (train 0): only the first (lowest query index) keeps train 0
+    assert qi.tolist() == [0, 1, 2] and ti.tolist() == [1, 0, 2]
+    qi, _ = match_descriptors(query, train, ratio=0.8, max_distance=0)
+    assert qi.tolist() == [0, 1]
+
+
+def test_tum_frames_far_apart_in_time_overlap_and_are_accepted_with_the_true_pose(tum_dir, vocabulary):
+    from neb_slam_core.datasets import open_dataset
+    from neb_slam_core.geometry.rectify import Rectifier
+
+    ds = open_dataset(tum_dir)
+    rect = Rectifier()
+    a, b = rect(ds[0]), rect(ds[150])
+    det = LoopDetector(LoopConfig(), vocabulary)
+    ka = det.describe(0, a.stamp_ns, a.rgb, a.depth_m, a.intrinsics)
+    kb = det.describe(1, b.stamp_ns, b.rgb, b.depth_m, b.intrinsics)
+    assert len(ka.features) == det.cfg.n_features
+    check = det.verify(kb, ka)
+    assert check.accepted, check
+    err_m, err_deg = pose_error(check.T_cand_query, invert(a.T_world_cam) @ b.T_world_cam)
+    assert err_m < 0.05 and err_deg < 3.0
+
+
+def test_make_pose_convention_of_the_check(loop_detector):
+    # a keyframe checked against itself: identity relative pose
+    kf = loop_detector.keyframe(1)
+    check = loop_detector.verify(kf, kf)
+    assert check.accepted and np.allclose(check.T_cand_query, make_pose(np.eye(3), np.zeros(3)), atol=1e-6)

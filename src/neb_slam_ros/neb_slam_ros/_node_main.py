@@ -41,9 +41,10 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -
     return run_nodes([make_node], args, multi_threaded=False)
 
 
-def run_nodes(makers: Sequence[Callable[[], Node]], args: Sequence[str] | None = None,
+def run_nodes(makers: Sequence[Callable[[], Node | None]], args: Sequence[str] | None = None,
               multi_threaded: bool = True) -> int:
-    """Run several nodes in one process on one executor (multi-threaded by default)."""
+    """Run several nodes in one process on one executor (multi-threaded by default); a maker may return
+    None (that node is not wanted, e.g. no bag to replay)."""
     # rclpy.init installs rclpy's SIGINT/SIGTERM handlers: they shut the context down, which makes a
     # spinning executor raise ExternalShutdownException (SIGTERM) or lets Python raise KeyboardInterrupt
     # (SIGINT).
@@ -56,14 +57,15 @@ def run_nodes(makers: Sequence[Callable[[], Node]], args: Sequence[str] | None =
         # finds everything in place
         executor = MultiThreadedExecutor() if multi_threaded else SingleThreadedExecutor()
         for make in makers:
-            nodes.append(make())
-            executor.add_node(nodes[-1])
+            node = make()
+            if node is not None:
+                nodes.append(node)
+                executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # the normal way to stop a node
     except ParameterError as exc:
-        name = nodes[-1].get_name() if nodes else "neb_slam"
-        print(f"[{name}] error: {exc}", file=sys.stderr)
+        print(f"[ERROR] neb_slam: {exc}", file=sys.stderr)
         status = 2
     except RCLError:
         if rclpy.ok():

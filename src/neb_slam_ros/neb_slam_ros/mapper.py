@@ -87,6 +87,19 @@ def corrected_trajectory(path_stamps_ns: np.ndarray, path_poses: np.ndarray, key
     return Trajectory(stamps, out)
 
 
+def split_by_block(mesh, block_map) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """A mesh's triangles grouped by the block that holds their centroid (the lowest id where blocks
+    overlap): block id -> (vertices, faces, vertex colours), the vertex arrays shared."""
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if len(faces) == 0:
+        return {}
+    colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    centroids = torch.as_tensor(verts[faces].mean(axis=1), dtype=torch.float32, device=block_map.device)
+    inside = block_map.contains(centroids).cpu()
+    owner = torch.where(inside.any(dim=1), inside.float().argmax(dim=1), -1).numpy()
+    return {int(b): (verts, faces[owner == b], colours) for b in np.unique(owner) if b >= 0}
+
+
 class MapperNode(Node):
     """Integrates keyframes and optimises the map; see the module docstring."""
 
@@ -228,18 +241,8 @@ class MapperNode(Node):
         if len(self.backend.keyframes) == 0:
             return "no keyframe yet"
         mesh = self._mesh()
-        self.pub_mesh.publish(conversions.mesh_markers(self._split_by_block(mesh), time.time_ns(), self.opt.frame_id))
+        self.pub_mesh.publish(conversions.mesh_markers(split_by_block(mesh, self.block_map), time.time_ns(), self.opt.frame_id))
         return f"{len(mesh.faces)} faces"
-
-    def _split_by_block(self, mesh) -> dict[int, tuple]:
-        verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-        colours = np.asarray(mesh.visual.vertex_colors)[:, :3] if len(verts) else np.zeros((0, 3), np.uint8)
-        if len(faces) == 0:
-            return {}
-        centroids = torch.as_tensor(verts[faces].mean(axis=1), dtype=torch.float32)
-        inside = self.block_map.contains(centroids)
-        owner = torch.where(inside.any(dim=1), inside.float().argmax(dim=1), -1).numpy()
-        return {int(b): (verts, faces[owner == b], colours) for b in np.unique(owner) if b >= 0}
 
     def _run_dir(self) -> RunDirectory:
         self.out.mkdir(parents=True, exist_ok=True)

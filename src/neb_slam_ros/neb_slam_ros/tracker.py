@@ -38,106 +38,55 @@ from neb_slam_core.slam import Frontend, new_block_map
 from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import final_log, run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta
+from neb_slam_ros.camera_input import CameraInput, InputOptions
 from neb_slam_ros.params import declare_config, declare_options, require
-from neb_slam_ros.sync import StampPairer
 
 
 @dataclass(frozen=True)
 class TrackerOptions:
-    """The tracker's own parameters (the engine's come from the config)."""
+    """The tracker's own parameters (the camera input's are :class:`InputOptions`, the engine's the config)."""
 
-    depth_scale: float = 0.001
-    sync_slop_s: float = 0.02
-    reliable_inputs: bool = False
     map_sync: bool = True
-    frame_queue: int = 4
-    initial_pose_topic: str = ""
-    initial_pose_timeout_s: float = 10.0
     map_timeout_s: float = 600.0
+    initial_pose_timeout_s: float = 10.0
     frame_id: str = "map"
-    warn_period_s: float = 5.0
 
     PARAMETER_DOCS = {
-        "depth_scale": "metres per unit of 16UC1/mono16 depth images (32FC1 is metres)",
-        "sync_slop_s": "colour and depth are paired by stamp: exact, or nearest within this",
-        "reliable_inputs": "camera subscriptions reliable (lossless replay) instead of sensor-data QoS",
         "map_sync": "after a keyframe that triggers mapping, wait for its map update before the next frame",
-        "frame_queue": "frames kept while waiting for the map (older ones are dropped, with a warning)",
-        "initial_pose_topic": "PoseStamped topic giving the first frame's pose (e.g. ground_truth/pose); "
-                              "empty: identity",
-        "initial_pose_timeout_s": "how long the first frame waits for its pose on initial_pose_topic",
         "map_timeout_s": "warn when an awaited map update takes longer than this",
+        "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
         "frame_id": "frame of the published poses",
-        "warn_period_s": "throttle of repeated input warnings",
     }
 
     def check(self) -> None:
-        require(self.depth_scale > 0, "depth_scale", "> 0", self.depth_scale)
-        require(self.sync_slop_s >= 0, "sync_slop_s", ">= 0", self.sync_slop_s)
-        require(self.frame_queue >= 1, "frame_queue", ">= 1", self.frame_queue)
-        require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
         require(self.map_timeout_s > 0, "map_timeout_s", "> 0", self.map_timeout_s)
+        require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
-
-
-class InputWarnings:
-    """Counted, throttled warnings about bad input: one line per topic and problem kind per period."""
-
-    def __init__(self, logger, period_s: float):
-        self.logger = logger
-        self.period_s = period_s
-        self.counts: dict[str, int] = {}
-        self._last: dict[str, float] = {}
-
-    def warn(self, key: str, text: str) -> None:
-        self.counts[key] = self.counts.get(key, 0) + 1
-        now = time.monotonic()
-        if now - self._last.get(key, -1e9) >= self.period_s:
-            self._last[key] = now
-            self.logger.warning(f"{text} ({self.counts[key]} so far)")
-
-    @property
-    def total(self) -> int:
-        return sum(self.counts.values())
 
 
 class TrackerNode(Node):
     """Tracks every frame against the latest map it has; see the module docstring."""
 
-    HELD_FOR_CAMERA_INFO = 3
-
     def __init__(self) -> None:
         super().__init__("tracker", namespace=NAMESPACE)
         self.cfg = declare_config(self)
         self.opt = declare_options(self, TrackerOptions)
+        self.input_opt = declare_options(self, InputOptions)
         torch.manual_seed(self.cfg.seed)
         self.block_map = new_block_map(self.cfg)
         self.frontend: Frontend | None = None  # made at the first frame (its pose may come from a topic)
-        self.warnings = InputWarnings(self.get_logger(), self.opt.warn_period_s)
-
-        self.topics = tuple(self.resolve_topic_name(t) for t in ("rgb/image", "depth/image", "rgb/camera_info"))
-        self._pairer = StampPairer(int(round(self.opt.sync_slop_s * 1e9)))
-        self._camera = None
-        self._held: list = []  # frames that came before any camera info
         self._cond = threading.Condition()
         self._frames: deque = deque()
         self._updates: deque = deque()
-        self._initial_poses: dict[int, np.ndarray] = {}
         self._stop = False
-        self._n_accepted = 0
         self._n_dropped = 0
         self._awaited_ack: int | None = None  # stamp of the keyframe whose map update we wait for
         self._acked = -1
         self._map_version = 0
         self._prev: tuple[np.ndarray, int] | None = None
 
-        cam = qos.camera(self.opt.reliable_inputs)
-        self.create_subscription(Image, "rgb/image", lambda m: self._on_image("rgb", m), cam)
-        self.create_subscription(Image, "depth/image", lambda m: self._on_image("depth", m), cam)
-        self.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, cam)
+        self.input = CameraInput(self, self.input_opt, self._on_frame)
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
-        if self.opt.initial_pose_topic:
-            self.create_subscription(PoseStamped, self.opt.initial_pose_topic, self._on_initial_pose, qos.events())
         self.pub_pose = self.create_publisher(PoseStamped, "pose", qos.stream())
         self.pub_odom = self.create_publisher(Odometry, "odometry", qos.stream())
         self.pub_path = self.create_publisher(Path, "path", qos.state())
@@ -152,66 +101,18 @@ class TrackerNode(Node):
         self._worker = threading.Thread(target=self._work, name="tracker-worker", daemon=True)
         self._worker.start()
         self.get_logger().info(f"neb_slam tracker started (config {self.get_parameter('config').value}, "
-                               f"map_sync {self.opt.map_sync}, inputs {', '.join(self.topics)})")
+                               f"map_sync {self.opt.map_sync}, inputs {', '.join(self.input.topics)})")
 
     # ------------------------------------------------------------------ callbacks (executor thread)
 
-    def _on_camera_info(self, msg: CameraInfo) -> None:
-        try:
-            self._camera = conversions.camera_from_msg(msg, self.topics[2])
-        except conversions.InputError as exc:
-            self.warnings.warn(f"info:{exc.problem[:40]}", f"{exc}: camera info ignored")
-            return
-        held, self._held = self._held, []
-        self._accept(held)
-
-    def _on_image(self, stream: str, msg: Image) -> None:
-        topic = self.topics[0 if stream == "rgb" else 1]
-        pairs, refused = self._pairer.push(stream, conversions.stamp_ns(msg), msg)
-        if refused:
-            self.warnings.warn(f"{stream}:order", f"{topic}: {refused}: message skipped")
-        if self._camera is None and pairs:
-            # topics arrive in any order: the first frames may come before the camera info, so a few are
-            # held for it; beyond that they are dropped with the warning that names the missing topic
-            self._held += pairs
-            while len(self._held) > self.HELD_FOR_CAMERA_INFO:
-                pair = self._held.pop(0)
-                self.warnings.warn("no_info", f"{self.topics[1]}: no camera info received yet on {self.topics[2]}: "
-                                              f"frame {pair.stamp_ns} skipped")
-            return
-        self._accept(pairs)
-
-    def _accept(self, pairs) -> None:
-        for pair in pairs:
-            try:
-                frame, n_nan = conversions.frame_from_msgs(pair.rgb, pair.depth, self._camera, self.opt.depth_scale,
-                                                           self.topics, self._n_accepted)
-            except conversions.InputError as exc:
-                self.warnings.warn(f"{exc.topic}:{exc.problem[:40]}", f"{exc}: frame {pair.stamp_ns} skipped")
-                continue
-            if n_nan:
-                self.warnings.warn(f"{self.topics[1]}:nan", f"{self.topics[1]}: {n_nan} depth pixels NaN or Inf "
-                                   "(REP 118: invalid), used as missing depth")
-            self._n_accepted += 1
-            with self._cond:
-                self._frames.append(frame)
-                if len(self._frames) > self.opt.frame_queue:
-                    self._frames.popleft()
-                    self._n_dropped += 1
-                    self.warnings.warn("queue", f"tracking is behind the input: oldest queued frame dropped "
-                                                f"({self._n_dropped} dropped)")
-                self._cond.notify_all()
-
-    def _on_initial_pose(self, msg: PoseStamped) -> None:
-        try:
-            T = conversions.pose_from_msg(msg, self.opt.initial_pose_topic)
-        except conversions.InputError as exc:
-            self.warnings.warn("initial_pose", f"{exc}: ignored")
-            return
+    def _on_frame(self, frame) -> None:
         with self._cond:
-            self._initial_poses[conversions.stamp_ns(msg)] = T
-            while len(self._initial_poses) > 100:
-                del self._initial_poses[min(self._initial_poses)]
+            self._frames.append(frame)
+            if len(self._frames) > self.input_opt.frame_queue:
+                self._frames.popleft()
+                self._n_dropped += 1
+                self.input.warnings.warn("queue", f"tracking is behind the input: oldest queued frame dropped "
+                                                  f"({self._n_dropped} dropped)")
             self._cond.notify_all()
 
     def _on_map_update(self, msg: UInt8MultiArray) -> None:
@@ -258,22 +159,15 @@ class TrackerNode(Node):
                                             f"({type(exc).__name__}: {exc}); skipped")
 
     def _first_pose(self, stamp_ns: int) -> np.ndarray:
-        if not self.opt.initial_pose_topic:
+        topic = self.input_opt.ground_truth_topic
+        if not topic:
             return np.eye(4)
-        slop = int(round(self.opt.sync_slop_s * 1e9))
-        deadline = time.monotonic() + self.opt.initial_pose_timeout_s
-        with self._cond:
-            while True:
-                near = [s for s in self._initial_poses if abs(s - stamp_ns) <= slop]
-                if near:
-                    return self._initial_poses[min(near, key=lambda s: abs(s - stamp_ns))]
-                left = deadline - time.monotonic()
-                if left <= 0 or self._stop:
-                    break
-                self._cond.wait(min(left, 0.5))
-        self.get_logger().warning(f"no pose on {self.opt.initial_pose_topic} within {self.opt.sync_slop_s} s of the "
-                                  f"first frame after {self.opt.initial_pose_timeout_s} s: starting from identity")
-        return np.eye(4)
+        T = self.input.wait_for_ground_truth(stamp_ns, self.opt.initial_pose_timeout_s, lambda: self._stop)
+        if T is None:
+            self.get_logger().warning(f"no pose on {topic} near the first frame's stamp after "
+                                      f"{self.opt.initial_pose_timeout_s:g} s: starting from the identity")
+            return np.eye(4)
+        return T
 
     def _apply(self, update: map_update.MapUpdate) -> None:
         if update.version <= self._map_version:
@@ -338,7 +232,7 @@ class TrackerNode(Node):
         self._worker.join(timeout=60)
         n = 0 if self.frontend is None else self.frontend.n_frames
         final_log(self, f"neb_slam tracker stopped: {n} frames tracked, {len(self.block_map)} blocks, "
-                               f"{self._n_dropped} dropped, {self.warnings.total} input warnings")
+                               f"{self._n_dropped} dropped, {self.input.warnings.total} input warnings")
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -1,0 +1,164 @@
+"""The camera input of the ``tracker`` and ``slam`` nodes: colour, depth and camera info in, checked
+:class:`~neb_slam_core.types.RgbdFrame` out; every bad message is a counted, throttled warning naming the
+topic, never an exception.
+
+Inputs (relative names, remappable): ``rgb/image`` (rgb8, bgr8, rgba8, bgra8, mono8), ``depth/image``
+(16UC1 or mono16 in units of ``depth_scale`` metres, or 32FC1 metres) and ``rgb/camera_info``. Colour and
+depth are paired by stamp (exact, or nearest within ``sync_slop_s``); stamps must increase. Depth follows
+REP 118: NaN and Inf pixels are invalid readings, a frame without any valid depth is skipped.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+
+from neb_slam_core.types import RgbdFrame
+from neb_slam_ros import conversions, qos
+from neb_slam_ros.params import require
+from neb_slam_ros.sync import StampPairer
+
+
+@dataclass(frozen=True)
+class InputOptions:
+    """Parameters of the camera input (shared by ``tracker`` and ``slam``)."""
+
+    depth_scale: float = 0.001
+    sync_slop_s: float = 0.02
+    reliable_inputs: bool = False
+    frame_queue: int = 4
+    ground_truth_topic: str = ""
+    warn_period_s: float = 5.0
+
+    PARAMETER_DOCS = {
+        "depth_scale": "metres per unit of 16UC1/mono16 depth images (32FC1 is metres)",
+        "sync_slop_s": "colour and depth are paired by stamp: exact, or nearest within this",
+        "reliable_inputs": "camera subscriptions reliable (lossless replay) instead of sensor-data QoS",
+        "frame_queue": "frames kept while the engine is busy (older ones are dropped, with a warning)",
+        "ground_truth_topic": "PoseStamped topic with the camera's ground truth (e.g. ground_truth/pose): the "
+                              "first frame starts from its pose; empty: from the identity",
+        "warn_period_s": "throttle of repeated input warnings",
+    }
+
+    def check(self) -> None:
+        require(self.depth_scale > 0, "depth_scale", "> 0", self.depth_scale)
+        require(self.sync_slop_s >= 0, "sync_slop_s", ">= 0", self.sync_slop_s)
+        require(self.frame_queue >= 1, "frame_queue", ">= 1", self.frame_queue)
+        require(self.warn_period_s >= 0, "warn_period_s", ">= 0", self.warn_period_s)
+
+
+class InputWarnings:
+    """Counted, throttled warnings about bad input: one line per topic and problem kind per period."""
+
+    def __init__(self, logger, period_s: float):
+        self.logger = logger
+        self.period_s = period_s
+        self.counts: dict[str, int] = {}
+        self._last: dict[str, float] = {}
+
+    def warn(self, key: str, text: str) -> None:
+        self.counts[key] = self.counts.get(key, 0) + 1
+        now = time.monotonic()
+        if now - self._last.get(key, -1e9) >= self.period_s:
+            self._last[key] = now
+            self.logger.warning(f"{text} ({self.counts[key]} so far)")
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+class CameraInput:
+    """Subscribes the camera topics on ``node`` and calls ``on_frame(frame)`` for every usable frame
+    (in the executor's thread; keep it short). Ground-truth poses, when ``ground_truth_topic`` is set, are
+    kept by stamp for :meth:`ground_truth_near`."""
+
+    HELD_FOR_CAMERA_INFO = 3
+
+    def __init__(self, node: Node, opt: InputOptions, on_frame: Callable[[RgbdFrame], None]):
+        self.node = node
+        self.opt = opt
+        self.on_frame = on_frame
+        self.warnings = InputWarnings(node.get_logger(), opt.warn_period_s)
+        self.topics = tuple(node.resolve_topic_name(t) for t in ("rgb/image", "depth/image", "rgb/camera_info"))
+        self.slop_ns = int(round(opt.sync_slop_s * 1e9))
+        self._pairer = StampPairer(self.slop_ns)
+        self._camera = None
+        self._held: list = []  # frames that came before any camera info
+        self.n_accepted = 0
+        self._ground_truth: dict[int, np.ndarray] = {}
+        cam = qos.camera(opt.reliable_inputs)
+        node.create_subscription(Image, "rgb/image", lambda m: self._on_image("rgb", m), cam)
+        node.create_subscription(Image, "depth/image", lambda m: self._on_image("depth", m), cam)
+        node.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, cam)
+        if opt.ground_truth_topic:
+            node.create_subscription(PoseStamped, opt.ground_truth_topic, self._on_ground_truth, qos.events())
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            self._camera = conversions.camera_from_msg(msg, self.topics[2])
+        except conversions.InputError as exc:
+            self.warnings.warn(f"info:{exc.problem[:40]}", f"{exc}: camera info ignored")
+            return
+        held, self._held = self._held, []
+        self._accept(held)
+
+    def _on_image(self, stream: str, msg: Image) -> None:
+        topic = self.topics[0 if stream == "rgb" else 1]
+        pairs, refused = self._pairer.push(stream, conversions.stamp_ns(msg), msg)
+        if refused:
+            self.warnings.warn(f"{stream}:order", f"{topic}: {refused}: message skipped")
+        if self._camera is None and pairs:
+            # topics arrive in any order: the first frames may come before the camera info, so a few are
+            # held for it; beyond that they are dropped with the warning that names the missing topic
+            self._held += pairs
+            while len(self._held) > self.HELD_FOR_CAMERA_INFO:
+                pair = self._held.pop(0)
+                self.warnings.warn("no_info", f"{self.topics[1]}: no camera info received yet on {self.topics[2]}: "
+                                              f"frame {pair.stamp_ns} skipped")
+            return
+        self._accept(pairs)
+
+    def _accept(self, pairs) -> None:
+        for pair in pairs:
+            try:
+                frame, n_nan = conversions.frame_from_msgs(pair.rgb, pair.depth, self._camera, self.opt.depth_scale,
+                                                           self.topics, self.n_accepted)
+            except conversions.InputError as exc:
+                self.warnings.warn(f"{exc.topic}:{exc.problem[:40]}", f"{exc}: frame {pair.stamp_ns} skipped")
+                continue
+            if n_nan:
+                self.warnings.warn(f"{self.topics[1]}:nan", f"{self.topics[1]}: {n_nan} depth pixels NaN or Inf "
+                                   "(REP 118: invalid readings), used as missing depth")
+            self.n_accepted += 1
+            self.on_frame(frame)
+
+    def _on_ground_truth(self, msg: PoseStamped) -> None:
+        try:
+            T = conversions.pose_from_msg(msg, self.opt.ground_truth_topic)
+        except conversions.InputError as exc:
+            self.warnings.warn("ground_truth", f"{exc}: ignored")
+            return
+        self._ground_truth[conversions.stamp_ns(msg)] = T
+        while len(self._ground_truth) > 10_000:
+            del self._ground_truth[min(self._ground_truth)]
+
+    def ground_truth_near(self, stamp_ns: int) -> np.ndarray | None:
+        """The ground-truth pose within ``sync_slop_s`` of ``stamp_ns`` (nearest), or None."""
+        near = [s for s in list(self._ground_truth) if abs(s - stamp_ns) <= self.slop_ns]
+        return self._ground_truth[min(near, key=lambda s: abs(s - stamp_ns))] if near else None
+
+    def wait_for_ground_truth(self, stamp_ns: int, timeout_s: float, stop: Callable[[], bool]) -> np.ndarray | None:
+        """:meth:`ground_truth_near`, waiting up to ``timeout_s`` for it (topics arrive in any order)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            T = self.ground_truth_near(stamp_ns)
+            if T is not None or time.monotonic() >= deadline or stop():
+                return T
+            time.sleep(0.05)

@@ -163,6 +163,9 @@ class MapperNode(Node):
     def _request(self, what: str) -> tuple[threading.Event, list]:
         done, reply = threading.Event(), []
         with self._cond:
+            if what == "publish_mesh" and any(w == what for w, _, _ in self._requests):
+                done.set()  # the periodic mesh is already due: publishing it twice in a row helps nobody
+                return done, reply
             self._requests.append((what, done, reply))
             self._cond.notify_all()
         return done, reply

@@ -112,6 +112,9 @@ class SlamNode(Node):
     def _request(self, what: str) -> tuple[threading.Event, list]:
         done, reply = threading.Event(), []
         with self._cond:
+            if what == "publish_mesh" and any(w == what for w, _, _ in self._requests):
+                done.set()  # the periodic mesh is already due: publishing it twice in a row helps nobody
+                return done, reply
             self._requests.append((what, done, reply))
             self._cond.notify_all()
         return done, reply
@@ -166,15 +169,16 @@ class SlamNode(Node):
         r = self.slam.process(frame)
         self.run_log.end(r)
         fid = self.opt.frame_id
-        self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, fid))
-        prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
-        self.pub_odom.publish(conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, fid, "camera"))
-        self._prev = (r.T_world_cam, r.stamp_ns)
         traj = self.slam.trajectory()
         self.pub_path.publish(conversions.path_msg(traj.stamps_ns, traj.poses, fid))
         if r.new_block_id is not None:
             centres = self.slam.block_map.centres().detach().cpu().double().numpy().reshape(-1, 3)
             self.pub_blocks.publish(conversions.block_markers(centres, self.cfg.block.edge_m, r.stamp_ns, fid))
+        prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
+        self.pub_odom.publish(conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, fid, "camera"))
+        self._prev = (r.T_world_cam, r.stamp_ns)
+        # the pose goes last: lockstep replay publishes the next frame (or ends the process) on it
+        self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, fid))
         if not r.tracking_ok:
             self.get_logger().warning(f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
                                       "kept the motion prediction")

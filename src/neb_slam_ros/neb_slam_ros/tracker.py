@@ -189,10 +189,6 @@ class TrackerNode(Node):
         step = self.frontend.step(frame)
         r = step.result
         fid = self.opt.frame_id
-        self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, fid))
-        prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
-        self.pub_odom.publish(conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, fid, "camera"))
-        self._prev = (r.T_world_cam, r.stamp_ns)
         self._publish_path()
         if r.new_block_id is not None:
             self.pub_blocks.publish(conversions.block_markers(self._centres(), self.cfg.block.edge_m, r.stamp_ns, fid))
@@ -201,6 +197,11 @@ class TrackerNode(Node):
         if step.map_now and (self.opt.map_sync or step.first):
             with self._cond:
                 self._awaited_ack = r.stamp_ns
+        prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
+        self.pub_odom.publish(conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, fid, "camera"))
+        self._prev = (r.T_world_cam, r.stamp_ns)
+        # the pose goes last: lockstep replay publishes the next frame (or ends) on it
+        self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, fid))
         if not r.tracking_ok:
             self.get_logger().warning(f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
                                       "kept the motion prediction")

@@ -403,3 +403,18 @@ def test_cli_convert_tum_example(tum_dir, tmp_path, capsys):
     np.testing.assert_array_equal(ds[2].rgb, tum[2].rgb)
     # 16UC1 millimetres: TUM's 1/5000 m depth changes by at most half a millimetre
     assert np.abs(ds[2].depth_m - tum[2].depth_m).max() <= 0.0005 + 1e-6
+
+
+def test_ground_truth_trajectory_is_the_frames_poses(tmp_path):
+    """``BagDataset.ground_truth()`` gives, without reading images, the poses the frames carry."""
+    from neb_slam_core.datasets.bag import BagDataset
+    from neb_slam_core.io.bag import write_bag
+    from neb_slam_core.synth.generate import generate
+
+    ds_src = open_dataset(generate("small", tmp_path / "s", n_frames=4, progress=False))
+    frames = [ds_src[i] for i in range(4)]
+    write_bag(frames, tmp_path / "bag")
+    with BagDataset(tmp_path / "bag") as ds:
+        gt = ds.ground_truth()
+        assert gt.stamps_ns.tolist() == [f.stamp_ns for f in frames]
+        np.testing.assert_allclose(gt.poses, np.stack([f.T_world_cam for f in frames]), atol=1e-9)

@@ -338,6 +338,15 @@ class BagDataset(Dataset):
                             self.root, n_missing, len(gi), t.ground_truth)
             self._poses = [gt_poses[j] if j >= 0 else None for j in gi]
 
+    def ground_truth(self):
+        """The ground-truth poses of the frames that have one, as a
+        :class:`~neb_slam_core.io.trajectory.Trajectory` stamped with the frames' stamps (no image is read)."""
+        from ..io.trajectory import Trajectory
+
+        rows = [i for i, T in enumerate(self._poses or []) if T is not None]
+        poses = np.stack([self._poses[i] for i in rows]) if rows else np.zeros((0, 4, 4))
+        return Trajectory(self._stamps_ns[rows], poses)
+
     # ------------------------------------------------------------------------------------------
     # Dataset interface
 

@@ -1,0 +1,163 @@
+"""Replay a bag through the node suite and evaluate it: what ``make demo`` and the integration tests run.
+
+``ros2 launch`` is not available as a wheel, so this small launcher starts the nodes as processes (the
+installed executables' modules, exactly what ``ros2 run`` starts), replays the bag in lockstep, stops the
+suite in order when the bag ends (mapper first: it finishes its keyframes and writes its files; then the
+tracker), and turns the mapper's output folder into a run directory with the layout of ``neb-slam run``:
+``trajectory.txt``, ``groundtruth.txt``, ``mesh.ply``, ``map.pt``, ``metrics.json`` and the plots.
+
+    python -m neb_slam_ros.suite bags/demo_scene_bag --config synthetic --out runs/demo
+    python -m neb_slam_ros.suite bags/fr1_xyz --config tum --one-process
+
+Separate processes: ``tracker``, ``mapper``, ``bag_replay`` (``loop_closer`` joins when loop closure lands
+in the engine). ``--one-process``: the ``slam`` executable with the replay inside.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+STOP_TIMEOUT_S = 600.0
+
+
+@dataclass
+class SuiteRun:
+    """One replay: the run directory, its metrics, and each process' exit status and log file."""
+
+    run_dir: Path
+    metrics: dict
+    wall_s: float
+    exit_codes: dict[str, int] = field(default_factory=dict)
+    logs: dict[str, Path] = field(default_factory=dict)
+
+
+def _node_cmd(node: str, params: dict[str, object]) -> list[str]:
+    cmd = [sys.executable, "-m", f"neb_slam_ros.{node}", "--ros-args"]
+    for name, value in params.items():
+        text = str(value).lower() if isinstance(value, bool) else str(value)
+        cmd += ["-p", f"{name}:={text}"]
+    return cmd
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    here = str(Path(__file__).resolve().parents[1])  # makes the modules importable without colcon
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (here, env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_process: bool = False,
+           seed: int = 0, mesh_period_s: float = 0.0, env: dict[str, str] | None = None,
+           extra_params: dict[str, object] | None = None) -> SuiteRun:
+    """Replay ``bag`` (first ``count`` frames; 0: all) through the suite into run directory ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    logs_dir = out / "logs"
+    logs_dir.mkdir(exist_ok=True)
+    env = env or _env()
+    engine = {"config": config, "seed": seed, **(extra_params or {})}
+    camera = {"reliable_inputs": True, "ground_truth_topic": "ground_truth/pose"}
+    replay = {"bag": str(bag), "lockstep": True, "rate": 0.0, "count": count}
+    if one_process:
+        plan = {"slam": {**engine, **camera, **replay, "output_dir": str(out), "mesh_period_s": mesh_period_s}}
+    else:
+        plan = {"mapper": {**engine, "output_dir": str(out), "mesh_period_s": mesh_period_s},
+                "tracker": {**engine, **camera},
+                "bag_replay": replay}
+    procs: dict[str, subprocess.Popen] = {}
+    run = SuiteRun(out, {}, 0.0)
+    t0 = time.perf_counter()
+    try:
+        for node, params in plan.items():
+            run.logs[node] = logs_dir / f"{node}.log"
+            procs[node] = subprocess.Popen(_node_cmd(node, params), env=env, stdin=subprocess.DEVNULL,
+                                           stdout=run.logs[node].open("w"), stderr=subprocess.STDOUT)
+        driver = "slam" if one_process else "bag_replay"
+        run.exit_codes[driver] = procs[driver].wait()  # the replay ends the process when the bag ends
+        run.wall_s = time.perf_counter() - t0
+        for node in ("mapper", "tracker"):  # the mapper finishes its keyframes, then writes its files
+            if node in procs:
+                procs[node].send_signal(signal.SIGINT)
+                run.exit_codes[node] = procs[node].wait(STOP_TIMEOUT_S)
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    if not one_process:
+        run.metrics = finish_run_directory(out, bag, config, run.wall_s)
+    else:
+        run.metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
+    return run
+
+
+def finish_run_directory(out: Path, bag: Path, config: str, wall_s: float) -> dict:
+    """Add ground truth, metrics and plots to the mapper's output folder ``out``."""
+    from neb_slam_core.datasets.bag import BagDataset
+    from neb_slam_core.errors import DatasetError
+    from neb_slam_core.eval.report import trajectory_metrics, write_trajectory_plots
+    from neb_slam_core.io.run_dir import GROUNDTRUTH_FILE, METRICS_FILE, TRAJECTORY_FILE, RunDirectory
+    from neb_slam_core.io.trajectory import Trajectory, read_tum_trajectory
+    from neb_slam_core.scene.persistence import load_map
+
+    run_dir = RunDirectory(out)
+    est = read_tum_trajectory(run_dir.file(TRAJECTORY_FILE))
+    block_map, extra = load_map(run_dir.file("map.pt"))
+    metrics = {"status": "complete", "n_frames": len(est), "n_blocks": len(block_map), "param_mb": block_map.param_mb(),
+               "n_keyframes": len(extra.get("keyframe_stamps_ns", [])), "wall_s": wall_s,
+               "fps": len(est) / wall_s if wall_s > 0 else None, "config": config, "bag": str(bag)}
+    with BagDataset(bag) as ds:
+        gt_all = ds.ground_truth()
+        if len(gt_all):
+            rows = [np.flatnonzero(gt_all.stamps_ns == s) for s in est.stamps_ns]
+            keep = [r[0] for r in rows if len(r)]
+            gt = Trajectory(gt_all.stamps_ns[keep], gt_all.poses[keep])
+            run_dir.write_trajectory(gt, GROUNDTRUTH_FILE, "ground truth of the processed frames")
+            try:
+                ate_metrics, ate = trajectory_metrics(est, gt, est_source=run_dir.file(TRAJECTORY_FILE),
+                                                      gt_source=run_dir.file(GROUNDTRUTH_FILE))
+                metrics.update(ate_metrics)
+                write_trajectory_plots(ate, out)
+            except DatasetError as exc:
+                metrics["ate_skipped"] = str(exc)
+    run_dir.write_metrics(metrics)
+    assert run_dir.file(METRICS_FILE).is_file()
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", type=Path)
+    p.add_argument("--config", default="synthetic", help="engine config preset or YAML file (default synthetic)")
+    p.add_argument("--out", type=Path, help="run directory (default runs/suite-<bag>-<date>-<time>)")
+    p.add_argument("--count", type=int, default=0, help="frames to replay (0: all)")
+    p.add_argument("--one-process", action="store_true", help="the slam executable instead of separate nodes")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--mesh-period", type=float, default=0.0, help="mesh topic period in s (0: at the end only)")
+    args = p.parse_args(argv)
+    out = args.out or Path(time.strftime(f"runs/suite-{args.bag.name}-%Y%m%d-%H%M%S"))
+    run = launch(args.bag, out, args.config, args.count, args.one_process, args.seed, args.mesh_period)
+    bad = {k: v for k, v in run.exit_codes.items() if v != 0}
+    m = run.metrics
+    print(f"  frames / fps       {m.get('n_frames')} / {m.get('fps') or (m.get('n_frames', 0) / run.wall_s):.3f}")
+    print(f"  blocks / MB        {m.get('n_blocks')} / {m.get('param_mb', float('nan')):.3f}")
+    if "ate_rmse_cm" in m:
+        print(f"  ATE RMSE           {m['ate_rmse_cm']:.3f} cm")
+    print(f"  process logs       {out / 'logs'}")
+    if bad:
+        print(f"  non-zero exits     {bad}", file=sys.stderr)
+    print(out)
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,48 @@
+"""An independent subscriber process (what another robot's stack would be): it records what the suite
+publishes on pose, path, blocks and mesh, and on SIGINT writes a JSON summary to the path given as argv[1]."""
+
+import json
+import sys
+
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from rclpy.executors import ExternalShutdownException
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from visualization_msgs.msg import MarkerArray
+
+seen = {"pose_stamps_ns": [], "path_lengths": [], "block_ids": [], "mesh_markers": 0, "mesh_points": 0}
+
+
+def stamp(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def main() -> None:
+    rclpy.init()
+    node = rclpy.create_node("listener", namespace="neb_slam")
+    state = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    stream = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(PoseStamped, "pose", lambda m: seen["pose_stamps_ns"].append(stamp(m)), stream)
+    node.create_subscription(Path, "path", lambda m: seen["path_lengths"].append(len(m.poses)), state)
+
+    def on_blocks(m):
+        seen["block_ids"] = sorted(k.id for k in m.markers)
+
+    def on_mesh(m):
+        seen["mesh_markers"] = len(m.markers)
+        seen["mesh_points"] = sum(len(k.points) for k in m.markers)
+
+    node.create_subscription(MarkerArray, "blocks", on_blocks, state)
+    node.create_subscription(MarkerArray, "mesh", on_mesh, state)
+    print("listener ready", file=sys.stderr, flush=True)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    with open(sys.argv[1], "w") as f:
+        json.dump(seen, f)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,223 @@
+"""The node suite end to end over real DDS: separate processes and the one-process ``slam`` replay a small
+synthetic bag in lockstep; an independent subscriber process receives pose, path, blocks and mesh; every
+frame gets a pose; the trajectory matches the offline engine on the same bag and seed; the mapper's
+shutdown files load. Plus: bad input on the camera topics is warned about and skipped, and the tracker
+keeps running.
+
+Every process of this file talks on its own random ROS_DOMAIN_ID, on localhost only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = [pytest.mark.ros, pytest.mark.filterwarnings("ignore::DeprecationWarning:lark.*")]
+
+REPO = Path(__file__).resolve().parents[2]
+N_FRAMES = 8  # frames 0-7: the first keyframe's initialisation, tracking against it, a mapping keyframe at 5
+CONFIG = "ci"
+
+
+@pytest.fixture(scope="module")
+def ros_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 200))
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env["PYTHONUNBUFFERED"] = "1"
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO / "src" / "neb_slam_ros"), env.get("PYTHONPATH", "")) if p)
+    return env
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory) -> Path:
+    from neb_slam_core.datasets import open_dataset
+    from neb_slam_core.io.bag import BagWriteOptions, write_bag
+    from neb_slam_core.synth.generate import generate
+
+    root = tmp_path_factory.mktemp("suite")
+    ds = open_dataset(generate("small", root / "scene", progress=False))
+    bag = root / "bag"
+    write_bag([ds[i] for i in range(N_FRAMES)], bag, BagWriteOptions(depth_encoding="32FC1"), progress=False)
+    return bag
+
+
+@pytest.fixture(scope="module")
+def offline(small_bag: Path):
+    """The one-process engine on the same bag, config and seed: what `neb-slam run` computes."""
+    from neb_slam_core.config_io import load_config
+    from neb_slam_core.datasets.bag import BagDataset
+    from neb_slam_core.slam import Slam
+
+    with BagDataset(small_bag) as ds:
+        frames = [ds[i] for i in range(len(ds))]
+    slam = Slam(load_config(CONFIG), frames[0].T_world_cam)
+    for f in frames:
+        slam.process(f)
+    return slam.trajectory(), frames
+
+
+def _ate_cm(traj, frames) -> float:
+    from neb_slam_core.eval.trajectory_metrics import evaluate_ate
+    from neb_slam_core.io.trajectory import Trajectory
+
+    gt = Trajectory(np.array([f.stamp_ns for f in frames]), np.stack([f.T_world_cam for f in frames]))
+    return evaluate_ate(traj, gt).rmse_cm
+
+
+def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: bool):
+    from neb_slam_ros.suite import launch
+
+    listener_json = out.parent / f"{out.name}-listener.json"
+    listener = subprocess.Popen([sys.executable, str(Path(__file__).with_name("listener.py")), str(listener_json)],
+                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "listener ready" in listener.stderr.readline()
+        run = launch(small_bag, out, CONFIG, one_process=one_process, mesh_period_s=8.0, env=env)
+        time.sleep(2.0)  # the last path and mesh messages reach the listener
+    finally:
+        listener.send_signal(signal.SIGINT)
+        listener.wait(30)
+    logs = {k: p.read_text() for k, p in run.logs.items()}
+    return run, json.loads(listener_json.read_text()), logs
+
+
+def _check(run, seen, logs, offline, small_bag: Path) -> None:
+    from neb_slam_core.io.trajectory import read_tum_trajectory
+    from neb_slam_core.scene.persistence import load_map
+
+    traj_ref, frames = offline
+    assert all(code == 0 for code in run.exit_codes.values()), (run.exit_codes, logs)
+    for text in logs.values():
+        assert "Traceback" not in text, text
+    # every frame of the bag got a pose, in order, and the listener saw each one
+    stamps = [f.stamp_ns for f in frames]
+    assert seen["pose_stamps_ns"] == stamps
+    assert seen["path_lengths"] and seen["path_lengths"][-1] == N_FRAMES
+    assert seen["block_ids"] == list(range(len(seen["block_ids"]))) and len(seen["block_ids"]) >= 1
+    assert seen["mesh_markers"] >= 1 and seen["mesh_points"] > 0 and seen["mesh_points"] % 3 == 0
+    # the written trajectory is the offline engine's (same bag, config, seed): within 10 % or 0.2 cm of its ATE
+    est = read_tum_trajectory(run.run_dir / "trajectory.txt")
+    assert est.stamps_ns.tolist() == stamps
+    ate_suite, ate_offline = _ate_cm(est, frames), _ate_cm(traj_ref, frames)
+    assert abs(ate_suite - ate_offline) <= max(0.1 * ate_offline, 0.2), (ate_suite, ate_offline)
+    assert abs(run.metrics["ate_rmse_cm"] - ate_suite) < 1e-3
+    # the shutdown files exist and load
+    block_map, extra = load_map(run.run_dir / "map.pt")
+    assert len(block_map) == len(seen["block_ids"])
+    assert len(extra["keyframe_stamps_ns"]) >= 2
+    import trimesh
+
+    mesh = trimesh.load(run.run_dir / "mesh.ply")
+    assert len(mesh.faces) > 100
+    for name in ("groundtruth.txt", "metrics.json", "trajectory.png", "config.yaml"):
+        assert (run.run_dir / name).is_file(), name
+
+
+def test_separate_processes_replay_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):
+    run, seen, logs = _run_suite(small_bag, tmp_path / "suite", ros_env, one_process=False)
+    _check(run, seen, logs, offline, small_bag)
+    # lockstep with map_sync: exactly the one-process computation, to the last bit of the float64 poses
+    # (up to the quaternion of the path messages the mapper corrects with)
+    from neb_slam_core.io.trajectory import read_tum_trajectory
+
+    est = read_tum_trajectory(run.run_dir / "trajectory.txt")
+    np.testing.assert_allclose(est.poses, offline[0].poses, atol=1e-6)
+
+
+def test_one_process_slam_replays_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):
+    run, seen, logs = _run_suite(small_bag, tmp_path / "slam", ros_env, one_process=True)
+    _check(run, seen, logs, offline, small_bag)
+    for name in ("timings.csv", "blocks.png", "ate_over_time.png"):
+        assert (run.run_dir / name).is_file(), name
+
+
+def test_bad_input_is_warned_about_and_skipped_and_the_tracker_keeps_running(ros_env):
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from neb_slam_core.types import Intrinsics
+    from neb_slam_ros import conversions
+
+    tracker = subprocess.Popen([sys.executable, "-m", "neb_slam_ros.tracker", "--ros-args", "-p", f"config:={CONFIG}",
+                                "-p", "reliable_inputs:=true", "-p", "warn_period_s:=0.0"],
+                               env=ros_env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        os.environ[key] = ros_env[key]
+    context = rclpy.Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("bad_input", namespace="neb_slam", context=context)
+    try:
+        reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        pub_rgb = node.create_publisher(Image, "rgb/image", reliable)
+        pub_depth = node.create_publisher(Image, "depth/image", reliable)
+        pub_info = node.create_publisher(CameraInfo, "rgb/camera_info", reliable)
+        deadline = time.monotonic() + 60
+        while min(p.get_subscription_count() for p in (pub_rgb, pub_depth, pub_info)) == 0:
+            assert time.monotonic() < deadline, "the tracker did not subscribe"
+            time.sleep(0.1)
+
+        h, w = 24, 32
+        intr = Intrinsics(30.0, 30.0, 16.0, 12.0, w, h)
+        rgb = np.full((h, w, 3), 128, np.uint8)
+        depth = np.full((h, w), 2.0, np.float32)
+        sec = 1_000_000_000
+
+        def send(k: int, rgb_img=rgb, depth_img=depth, rgb_enc=None, depth_stamp=None):
+            m = conversions.rgb_msg(rgb_img, k * sec, "camera")
+            if rgb_enc is not None:
+                m.encoding = rgb_enc
+            pub_rgb.publish(m)
+            pub_depth.publish(conversions.depth_msg(depth_img, (depth_stamp or k) * sec, "camera"))
+            time.sleep(0.3)
+
+        for k in range(1, 5):  # 4 frames before any camera info: 3 are held, the oldest is dropped
+            send(k)
+        pub_info.publish(conversions.camera_info_msg(intr, None, 4 * sec, "camera"))
+        time.sleep(0.5)
+        send(5, rgb_enc="rgb16")                                     # wrong encoding
+        send(6, rgb_img=np.zeros((10, 10, 3), np.uint8))              # size differs from camera info
+        send(7, depth_img=np.full((h, w), np.nan, np.float32))        # only NaN depth
+        send(8, depth_img=np.full((h, w), np.inf, np.float32))        # only Inf depth
+        send(9, depth_img=np.zeros((h, w), np.float32))               # only zeros
+        half_nan = depth.copy()
+        half_nan[:, : w // 2] = np.nan
+        send(10, depth_img=half_nan)                                  # REP 118: NaN = invalid, frame used
+        send(10)                                                      # duplicate stamp
+        send(3)                                                       # older stamp
+        time.sleep(2.0)
+        assert tracker.poll() is None, "the tracker died on bad input"
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        if tracker.poll() is None:
+            tracker.send_signal(signal.SIGINT)
+        out, _ = tracker.communicate(timeout=60)
+    assert tracker.returncode == 0, out
+    assert "Traceback" not in out, out
+    expected = [
+        "/neb_slam/depth/image: no camera info received yet on /neb_slam/rgb/camera_info: frame 1000000000 skipped",
+        "/neb_slam/rgb/image: colour encoding 'rgb16' is not supported",
+        "/neb_slam/rgb/image: image is 10x10 but /neb_slam/rgb/camera_info says 32x24",
+        "/neb_slam/depth/image: no valid depth pixel (all 0, NaN, Inf or negative): frame 7000000000 skipped",
+        "frame 8000000000 skipped",
+        "frame 9000000000 skipped",
+        "/neb_slam/depth/image: 384 depth pixels NaN or Inf",
+        "is a duplicate of the last frame's",
+        "is older than the last frame's",
+    ]
+    for text in expected:
+        assert text in out, f"missing warning {text!r} in:\n{out}"
+    # frames 2, 3, 4 (held for the camera info) and 10 were accepted: the summary line counts them
+    assert "tracker stopped" in out

@@ -6,6 +6,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 DEMO_SCENE := bags/demo_scene
 DEMO_BAG := bags/demo_scene_bag
+BAG ?= $(DEMO_BAG)
+CONFIG ?= synthetic
 
 .PHONY: venv test demo build clean-build bench
 
@@ -29,7 +31,7 @@ clean-build:
 	rm -rf build install log
 
 demo: venv
-	@$(PY) tools/demo.py --scene $(DEMO_SCENE) --bag $(DEMO_BAG)
+	@$(PY) tools/demo.py --scene $(DEMO_SCENE) --bag $(BAG) --config $(CONFIG)
 
 bench: venv
 	$(PY) benchmarks/encoding.py

@@ -213,7 +213,7 @@ def test_bad_input_is_warned_about_and_skipped_and_the_tracker_keeps_running(ros
         "/neb_slam/depth/image: no valid depth pixel (all 0, NaN, Inf or negative): frame 7000000000 skipped",
         "frame 8000000000 skipped",
         "frame 9000000000 skipped",
-        "/neb_slam/depth/image: 384 depth pixels NaN or Inf",
+        "/neb_slam/depth/image: 384 depth pixels NaN or Inf in frame 10000000000: read as invalid (REP 118)",
         "is a duplicate of the last frame's",
         "is older than the last frame's",
     ]

@@ -92,6 +92,7 @@ class CameraInput:
         self._camera = None
         self._held: list = []  # frames that came before any camera info
         self.n_accepted = 0
+        self._told_nan = False
         self._ground_truth: dict[int, np.ndarray] = {}
         cam = qos.camera(opt.reliable_inputs)
         node.create_subscription(Image, "rgb/image", lambda m: self._on_image("rgb", m), cam)
@@ -133,9 +134,11 @@ class CameraInput:
             except conversions.InputError as exc:
                 self.warnings.warn(f"{exc.topic}:{exc.problem[:40]}", f"{exc}: frame {pair.stamp_ns} skipped")
                 continue
-            if n_nan:
-                self.warnings.warn(f"{self.topics[1]}:nan", f"{self.topics[1]}: {n_nan} depth pixels NaN or Inf "
-                                   "(REP 118: invalid readings), used as missing depth")
+            if n_nan and not self._told_nan:
+                # NaN is how 32FC1 depth marks "no reading" (REP 118): normal, so said once, not warned
+                self._told_nan = True
+                self.node.get_logger().info(f"{self.topics[1]}: {n_nan} depth pixels NaN or Inf in frame "
+                                            f"{frame.stamp_ns}: read as invalid (REP 118), here and from now on")
             self.n_accepted += 1
             self.on_frame(frame)
 

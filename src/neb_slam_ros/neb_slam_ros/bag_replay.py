@@ -138,6 +138,7 @@ class BagReplayNode(Node):
     def _play(self) -> None:
         try:
             self._wait_for_subscribers()
+            self.get_logger().info(f"publishing frames ({len(self.indices)})")
             while not self._stop.is_set():
                 self._play_once()
                 if not self.opt.loop:

@@ -32,11 +32,17 @@ STOP_TIMEOUT_S = 600.0
 
 @dataclass
 class SuiteRun:
-    """One replay: the run directory, its metrics, and each process' exit status and log file."""
+    """One replay: the run directory, its metrics, and each process' exit status and log file.
+
+    ``wall_s``: from the start of the processes to the end of the replay (start-up included);
+    ``replay_s``: from the replay's first frame to its end, read from bag_replay's log stamps (the same
+    span in both modes, whatever the processes do before and after).
+    """
 
     run_dir: Path
     metrics: dict
     wall_s: float
+    replay_s: float = 0.0
     exit_codes: dict[str, int] = field(default_factory=dict)
     logs: dict[str, Path] = field(default_factory=dict)
 
@@ -93,11 +99,28 @@ def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_
             if p.poll() is None:
                 p.kill()
                 p.wait()
+    run.replay_s = _replay_span_s(run.logs["slam" if one_process else "bag_replay"].read_text())
     if not one_process:
         run.metrics = finish_run_directory(out, bag, config, run.wall_s)
     else:
         run.metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
+    if run.replay_s > 0:
+        run.metrics["replay_s"] = run.replay_s
+        run.metrics["fps"] = run.metrics["n_frames"] / run.replay_s
+        (out / "metrics.json").write_text(json.dumps(run.metrics, indent=2) + "\n")
     return run
+
+
+def _replay_span_s(log_text: str) -> float:
+    """Seconds between bag_replay's first published frame and its 'finished' line (0 when absent)."""
+    stamps = {}
+    for line in log_text.splitlines():
+        for key in ("publishing frames", "bag_replay finished"):
+            if key in line and "[neb_slam.bag_replay]" in line:
+                stamps[key] = float(line.split("] [", 2)[1].split("]")[0])
+    if len(stamps) < 2:
+        return 0.0
+    return stamps["bag_replay finished"] - stamps["publishing frames"]
 
 
 def finish_run_directory(out: Path, bag: Path, config: str, wall_s: float) -> dict:

@@ -4,7 +4,7 @@ Runs the engine's :class:`~neb_slam_core.slam.Slam` (tracking and mapping on one
 input and publishes what the separate ``tracker`` and ``mapper`` publish for other stacks: ``pose``,
 ``odometry``, ``path``, ``blocks`` and ``mesh`` (keyframes and map updates stay inside the process). With
 a ``bag`` parameter the process also runs ``bag_replay`` (its parameters: ``rate``, ``lockstep``, ``start``,
-``count``, ``loop``) on the same multi-threaded executor, and ends when the bag does. On shutdown it
+``count``, ``loop``) on the same executor, and ends when the bag does. On shutdown it
 writes a complete run directory into ``output_dir``, the same files as ``neb-slam run`` (trajectory,
 ground truth and ATE when ``ground_truth_topic`` is set, timings, metrics, plots, map, mesh).
 

@@ -11,7 +11,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
-seen = {"pose_stamps_ns": [], "path_lengths": [], "block_ids": [], "mesh_markers": 0, "mesh_points": 0}
+seen = {"pose_stamps_ns": [], "path_lengths": [], "path_stamps_ns": [], "block_ids": [], "mesh_markers": 0, "mesh_points": 0}
 
 
 def stamp(msg) -> int:
@@ -24,7 +24,11 @@ def main() -> None:
     state = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     stream = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(PoseStamped, "pose", lambda m: seen["pose_stamps_ns"].append(stamp(m)), stream)
-    node.create_subscription(Path, "path", lambda m: seen["path_lengths"].append(len(m.poses)), state)
+    def on_path(m):
+        seen["path_lengths"].append(len(m.poses))
+        seen["path_stamps_ns"] = [stamp(p) for p in m.poses]
+
+    node.create_subscription(Path, "path", on_path, state)
 
     def on_blocks(m):
         seen["block_ids"] = sorted(k.id for k in m.markers)

@@ -42,6 +42,7 @@ from neb_slam_core.slam import Backend, new_block_map
 from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import final_log, run_node
 from neb_slam_ros.keyframe_link import KeyframeAssembler, KeyframeMeta
+from neb_slam_ros.requests import Requests
 from neb_slam_ros.params import declare_config, declare_options, require
 
 
@@ -114,7 +115,7 @@ class MapperNode(Node):
         self._rng = np.random.default_rng(self.cfg.seed)
         self._assembler = KeyframeAssembler()
         self._cond = threading.Condition()
-        self._requests: list[tuple[str, threading.Event, list]] = []
+        self._requests = Requests(self._cond)
         self._stop = False
         self._version = 0
         self._unsent_blocks: set[int] = set()
@@ -128,10 +129,10 @@ class MapperNode(Node):
         self.create_subscription(PathMsg, "path", self._on_path, qos.state())
         self.pub_update = self.create_publisher(UInt8MultiArray, "map_update", qos.events(10))
         self.pub_mesh = self.create_publisher(MarkerArray, "mesh", qos.state())
-        self.create_service(Trigger, "save_mesh", lambda req, res: self._serve("save_mesh", res))
-        self.create_service(Trigger, "save_map", lambda req, res: self._serve("save_map", res))
+        self.create_service(Trigger, "save_mesh", lambda req, res: self._requests.serve("save_mesh", res))
+        self.create_service(Trigger, "save_map", lambda req, res: self._requests.serve("save_map", res))
         if self.opt.mesh_period_s > 0:
-            self.create_timer(self.opt.mesh_period_s, lambda: self._request("publish_mesh"))
+            self.create_timer(self.opt.mesh_period_s, lambda: self._requests.submit("publish_mesh"))
         self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
         self._worker.start()
         self.get_logger().info(f"neb_slam mapper started (config {self.get_parameter('config').value}, "
@@ -160,22 +161,6 @@ class MapperNode(Node):
         with self._cond:
             self._path = (stamps, poses)
 
-    def _request(self, what: str) -> tuple[threading.Event, list]:
-        done, reply = threading.Event(), []
-        with self._cond:
-            if what == "publish_mesh" and any(w == what for w, _, _ in self._requests):
-                done.set()  # the periodic mesh is already due: publishing it twice in a row helps nobody
-                return done, reply
-            self._requests.append((what, done, reply))
-            self._cond.notify_all()
-        return done, reply
-
-    def _serve(self, what: str, response: Trigger.Response) -> Trigger.Response:
-        done, reply = self._request(what)
-        done.wait(timeout=600)
-        response.success, response.message = (reply[0] if reply else (False, f"{what} timed out"))
-        return response
-
     # ------------------------------------------------------------------ worker thread
 
     def _work(self) -> None:
@@ -186,23 +171,13 @@ class MapperNode(Node):
                     return
                 ready = self._assembler.pop_ready()
                 # requests are served after the keyframes that arrived before them
-                requests, self._requests = self._requests, []
+                requests = self._requests.take()
             for parts in ready:
                 try:
                     self._integrate(parts)
                 except Exception as exc:  # never let one keyframe kill the mapper
                     self.get_logger().error(f"keyframe {parts['meta'].keyframe_id} failed: {type(exc).__name__}: {exc}")
-            for what, done, reply in requests:
-                if self._stop or not self.context.ok():
-                    reply.append((False, "the mapper is shutting down"))
-                    done.set()
-                    continue
-                try:
-                    reply.append((True, getattr(self, "_do_" + what)()))
-                except Exception as exc:
-                    reply.append((False, f"{type(exc).__name__}: {exc}"))
-                    self.get_logger().error(f"{what} failed: {type(exc).__name__}: {exc}")
-                done.set()
+            Requests.run(requests, self, self._stop)
 
     def _integrate(self, parts: dict) -> None:
         meta: KeyframeMeta = parts["meta"]

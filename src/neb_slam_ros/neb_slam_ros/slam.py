@@ -37,6 +37,7 @@ from neb_slam_core.slam import Slam
 from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import final_log, run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
+from neb_slam_ros.requests import Requests
 from neb_slam_ros.params import declare_config, declare_options, require
 
 
@@ -77,7 +78,7 @@ class SlamNode(Node):
         self.run_log = RunLog()
         self._cond = threading.Condition()
         self._frames: deque = deque()
-        self._requests: list[tuple[str, threading.Event, list]] = []
+        self._requests = Requests(self._cond)
         self._stop = False
         self._n_dropped = 0
         self._t_first: float | None = None
@@ -88,10 +89,10 @@ class SlamNode(Node):
         self.pub_path = self.create_publisher(PathMsg, "path", qos.state())
         self.pub_blocks = self.create_publisher(MarkerArray, "blocks", qos.state())
         self.pub_mesh = self.create_publisher(MarkerArray, "mesh", qos.state())
-        self.create_service(Trigger, "save_mesh", lambda req, res: self._serve("save_mesh", res))
-        self.create_service(Trigger, "save_map", lambda req, res: self._serve("save_map", res))
+        self.create_service(Trigger, "save_mesh", lambda req, res: self._requests.serve("save_mesh", res))
+        self.create_service(Trigger, "save_map", lambda req, res: self._requests.serve("save_map", res))
         if self.opt.mesh_period_s > 0:
-            self.create_timer(self.opt.mesh_period_s, lambda: self._request("publish_mesh"))
+            self.create_timer(self.opt.mesh_period_s, lambda: self._requests.submit("publish_mesh"))
         self._worker = threading.Thread(target=self._work, name="slam-worker", daemon=True)
         self._worker.start()
         self.get_logger().info(f"neb_slam slam started (config {self.get_parameter('config').value}, "
@@ -109,22 +110,6 @@ class SlamNode(Node):
                                                   f"({self._n_dropped} dropped)")
             self._cond.notify_all()
 
-    def _request(self, what: str) -> tuple[threading.Event, list]:
-        done, reply = threading.Event(), []
-        with self._cond:
-            if what == "publish_mesh" and any(w == what for w, _, _ in self._requests):
-                done.set()  # the periodic mesh is already due: publishing it twice in a row helps nobody
-                return done, reply
-            self._requests.append((what, done, reply))
-            self._cond.notify_all()
-        return done, reply
-
-    def _serve(self, what: str, response: Trigger.Response) -> Trigger.Response:
-        done, reply = self._request(what)
-        done.wait(timeout=600)
-        response.success, response.message = (reply[0] if reply else (False, f"{what} timed out"))
-        return response
-
     # ------------------------------------------------------------------ worker thread
 
     def _work(self) -> None:
@@ -134,23 +119,14 @@ class SlamNode(Node):
                 if self._stop:
                     return
                 frame = self._frames.popleft() if self._frames else None
-                requests, self._requests = self._requests, []
+                requests = self._requests.take()
             if frame is not None:
                 try:
                     self._process(frame)
                 except Exception as exc:  # a frame must never kill the node
                     self.get_logger().error(f"frame {frame.stamp_ns} failed in the engine "
                                             f"({type(exc).__name__}: {exc}); skipped")
-            for what, done, reply in requests:
-                if self._stop or not self.context.ok():
-                    reply.append((False, "the node is shutting down"))
-                else:
-                    try:
-                        reply.append((True, getattr(self, "_do_" + what)()))
-                    except Exception as exc:
-                        reply.append((False, f"{type(exc).__name__}: {exc}"))
-                        self.get_logger().error(f"{what} failed: {type(exc).__name__}: {exc}")
-                done.set()
+            Requests.run(requests, self, self._stop)
 
     def _process(self, frame) -> None:
         gt = None

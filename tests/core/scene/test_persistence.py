@@ -21,6 +21,7 @@ from neb_slam_core.config import RenderConfig
 from neb_slam_core.mapping.fit import render_depth_image
 from neb_slam_core.scene.persistence import load_map
 from neb_slam_core.types import Intrinsics, RgbdFrame
+torch.set_num_threads(int(sys.argv[3]))  # the parent's count: same summation order, same bits
 m, extra = load_map(sys.argv[1])
 k = Intrinsics(20.0, 20.0, 8.0, 6.0, 16, 12)
 frame = RgbdFrame(np.zeros((12, 16, 3), np.uint8), np.full((12, 16), 2.0, np.float32), k, 0)
@@ -48,12 +49,15 @@ def test_save_and_load_in_a_fresh_process_renders_the_same(tmp_path):
     assert depth.std() > 0  # a non-trivial image
     path = save_map(m, tmp_path / "map.pt", extra={"note": "hello"})
     out = tmp_path / "render.npz"
-    subprocess.run([sys.executable, "-c", RENDER_SNIPPET, str(path), str(out)], check=True)
+    subprocess.run([sys.executable, "-c", RENDER_SNIPPET, str(path), str(out), str(torch.get_num_threads())],
+                   check=True)
     loaded = np.load(out)
     assert np.array_equal(loaded["depth"], depth)
     assert np.array_equal(loaded["rgb"], rgb)
     assert str(loaded["note"]) == "hello"
     m2, _ = load_map(path)
+    for (name, a), (_, b) in zip(m.state_dict().items(), m2.state_dict().items()):
+        assert torch.equal(a, b), name
     assert len(m2) == 2 and m2.blocks[1].keyframe_ids == [4, 9]
     assert m2.block_cfg == m.block_cfg
 

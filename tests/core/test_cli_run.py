@@ -122,6 +122,8 @@ def test_metrics_match_the_files_they_summarise(shared_run):
     assert m["n_keyframes"] == sum(r["keyframe"] == "1" for r in rows)
     assert m["n_tracking_failures"] == sum(r["tracking_ok"] == "0" for r in rows)
     assert m["n_blocks"] == sum(r["new_block"] != "" for r in rows)
+    loops = json.loads((out / "loops.json").read_text())
+    assert m["n_loops_detected"] == len(loops) and m["n_loops_applied"] == sum(e["applied"] for e in loops)
     assert m["recon_culled"] is True  # culled to the ground-truth cameras
     assert all(math.isfinite(m[k]) for k in ("accuracy_cm", "completion_cm", "depth_l1_cm"))
 
@@ -137,7 +139,7 @@ def test_timings_csv_rows(shared_run, small_scene):
     first = rows[0]
     assert first["keyframe"] == "1" and first["new_block"] == "0" and float(first["track_ms"]) == 0.0
     for r in rows:
-        parts = sum(float(r[c]) for c in ("track_ms", "allocate_ms", "map_ms"))
+        parts = sum(float(r[c]) for c in ("track_ms", "allocate_ms", "map_ms", "loop_ms"))
         assert 0.0 <= parts <= float(r["total_ms"]) + 1e-3
 
 

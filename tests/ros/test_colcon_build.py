@@ -7,7 +7,6 @@ talks on its own random ROS_DOMAIN_ID and on localhost only, so parallel session
 from __future__ import annotations
 
 import os
-import random
 import shutil
 import signal
 import subprocess
@@ -33,22 +32,12 @@ def _start_line(node: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def ros_env() -> dict[str, str]:
-    """This process's environment on a private ROS domain, discovery limited to this machine."""
-    env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 200))
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
-
-
-@pytest.fixture(scope="module")
-def install_base(tmp_path_factory: pytest.TempPathFactory, ros_env: dict[str, str]) -> Path:
+def install_base(tmp_path_factory: pytest.TempPathFactory, ros_domain_env: dict[str, str]) -> Path:
     """Runs ``colcon build`` of the repo's src/ into a temporary build/install/log; returns install/."""
     if not COLCON.is_file():
         pytest.skip(f"colcon is not installed beside {sys.executable} (pip install -r requirements.txt)")
     base = tmp_path_factory.mktemp("colcon")
-    env = dict(ros_env, COLCON_HOME=str(base / "colcon_home"))  # ignore a user's ~/.colcon defaults
+    env = dict(ros_domain_env, COLCON_HOME=str(base / "colcon_home"))  # ignore a user's ~/.colcon defaults
     cmd = [str(COLCON), "--log-base", str(base / "log"), "build",
            "--base-paths", str(REPO / "src"),
            "--build-base", str(base / "build"), "--install-base", str(base / "install")]
@@ -134,7 +123,7 @@ def test_build_installs_the_five_node_executables(install_base: Path) -> None:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_installed_tracker_starts_and_stops_cleanly(install_base: Path, ros_env: dict[str, str], sig: int) -> None:
+def test_installed_tracker_starts_and_stops_cleanly(install_base: Path, ros_domain_env: dict[str, str], sig: int) -> None:
     bash = shutil.which("bash")
     if bash is None:
         pytest.skip("bash not found: needed to source install/setup.bash")
@@ -142,7 +131,7 @@ def test_installed_tracker_starts_and_stops_cleanly(install_base: Path, ros_env:
     # exactly what a user does: source the workspace, run the executable `ros2 run` would run;
     # exec keeps the pid, so the signal reaches the node itself
     script = f'source "{install_base / "setup.bash"}" && exec "{exe}"'
-    node = _NodeProcess([bash, "-c", script], ros_env)
+    node = _NodeProcess([bash, "-c", script], ros_domain_env)
     try:
         started = node.wait_for(_start_line("tracker"), START_TIMEOUT_S)
     finally:
@@ -152,17 +141,17 @@ def test_installed_tracker_starts_and_stops_cleanly(install_base: Path, ros_env:
     assert "Traceback" not in node.stderr + node.stdout, node.stderr
 
 
-def test_tracker_module_is_visible_in_the_ros_graph(ros_env: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> None:
+def test_tracker_module_is_visible_in_the_ros_graph(ros_domain_env: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> None:
     rclpy = pytest.importorskip("rclpy", reason="rclpy (ros-jazzy wheels) not installed")
     from rclpy.signals import SignalHandlerOptions
 
-    env = dict(ros_env)
+    env = dict(ros_domain_env)
     env["PYTHONPATH"] = os.pathsep.join(
         p for p in (str(REPO / "src" / "neb_slam_ros"), env.get("PYTHONPATH", "")) if p)
     node_proc = _NodeProcess([sys.executable, "-m", "neb_slam_ros.tracker"], env)
 
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
-        monkeypatch.setenv(key, ros_env[key])
+        monkeypatch.setenv(key, ros_domain_env[key])
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     observer = None

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -26,16 +25,6 @@ pytestmark = [pytest.mark.ros, pytest.mark.filterwarnings("ignore::DeprecationWa
 REPO = Path(__file__).resolve().parents[2]
 N_FRAMES = 8  # frames 0-7: the first keyframe's initialisation, tracking against it, a mapping keyframe at 5
 CONFIG = "ci"
-
-
-@pytest.fixture(scope="module")
-def ros_env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 200))
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env["PYTHONUNBUFFERED"] = "1"
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO / "src" / "neb_slam_ros"), env.get("PYTHONPATH", "")) if p)
-    return env
 
 
 @pytest.fixture(scope="module")

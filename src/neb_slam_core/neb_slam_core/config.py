@@ -291,6 +291,15 @@ class LoopConfig:
     match reprojecting within ``reprojection_error_px`` whose two 3D points agree within
     ``max_point_error_m`` (times the depth beyond 1 m). Accepted with at least ``min_inliers`` inliers
     that are at least ``min_inlier_ratio`` of the matches with depth in both frames.
+
+    Correction (``loop/correction.py``): the current keyframe's pose minimises the paper's reprojection
+    objective over ``correction_pixels`` of its pixels through the loop keyframes' depth maps (kept every
+    ``depth_stride``-th pixel), starting from the geometric check's pose; it is applied when the fit
+    ends below ``max_fit_rms_px`` with at least ``min_valid_share`` of the pixel/keyframe pairs valid,
+    and when it moves the keyframe by at least ``min_correction_cm`` or ``min_correction_deg`` (a
+    smaller one is within what mapping refines anyway). Then the correction is spread along the loop,
+    and the map re-optimised in two stages: ``map_iterations`` with the poses fixed, then
+    ``joint_iterations`` of poses and map (the paper gives no counts; ours are measured, see README).
     """
 
     enabled: bool = True
@@ -311,6 +320,14 @@ class LoopConfig:
     max_point_error_m: float = 0.015
     min_inliers: int = 30
     min_inlier_ratio: float = 0.2
+    correction_pixels: int = 2000
+    depth_stride: int = 2
+    max_fit_rms_px: float = 2.0
+    min_valid_share: float = 0.3
+    min_correction_cm: float = 1.0
+    min_correction_deg: float = 0.5
+    map_iterations: int = 50
+    joint_iterations: int = 50
 
 
 @dataclass(frozen=True)

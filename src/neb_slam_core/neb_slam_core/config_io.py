@@ -444,6 +444,14 @@ RULES: dict[str, Any] = {
     "loop.max_point_error_m": _POSITIVE,
     "loop.min_inliers": _Int(4),
     "loop.min_inlier_ratio": _Num(0.0, 1.0, lo_open=False, hi_open=False),
+    "loop.correction_pixels": _Int(10),
+    "loop.depth_stride": _Int(1, 16),
+    "loop.max_fit_rms_px": _POSITIVE,
+    "loop.min_valid_share": _Num(0.0, 1.0, lo_open=False, hi_open=False),
+    "loop.min_correction_cm": _Num(0.0, lo_open=False),
+    "loop.min_correction_deg": _Num(0.0, lo_open=False),
+    "loop.map_iterations": _COUNT,
+    "loop.joint_iterations": _COUNT,
 }
 
 

@@ -1,4 +1,4 @@
-"""The per-frame loop of NeB-SLAM: predict, track, allocate, keyframe, map. No I/O.
+"""The per-frame loop of NeB-SLAM: predict, track, allocate, keyframe, map, loop check. No I/O.
 
     slam = Slam(config)
     for frame in dataset:
@@ -34,12 +34,13 @@ from .geometry.rays import backproject_depth
 from .geometry.rectify import Rectifier
 from .geometry.se3 import invert, orthonormalize
 from .io.trajectory import Trajectory
+from .loop.closer import LoopCloser
 from .mapping.keyframes import Keyframe, KeyframeStore
 from .mapping.mapper import Mapper
 from .render.rays import all_pixels
 from .scene.block_map import BlockMap
 from .tracking.tracker import Tracker
-from .types import RgbdFrame, StepResult, StepTimings
+from .types import LoopEvent, RgbdFrame, StepResult, StepTimings
 
 
 def new_block_map(cfg: SlamConfig) -> BlockMap:
@@ -245,12 +246,7 @@ class Backend:
         """Store keyframe ``frame`` (rectified) at ``T_world_cam``; then initialise the map on it
         (``first``) or run a joint optimisation step (``map_now``)."""
         kf = self.keyframes.add(frame, T_world_cam, frame_index)
-        pts = torch.as_tensor(kf.observed_points(), dtype=torch.float32, device=self.block_map.device)
-        if len(pts):
-            share = self.block_map.contains(pts).float().mean(dim=0)  # (M,)
-            for block_id in (share > 0.1).nonzero(as_tuple=True)[0].tolist():
-                kf.block_ids.append(block_id)
-                self.block_map.blocks[block_id].keyframe_ids.append(kf.keyframe_id)
+        self._assign_blocks(kf)
         if not (first or map_now):
             return MappingStep(kf, False, 0.0)
         t0 = time.perf_counter()
@@ -261,6 +257,36 @@ class Backend:
         else:
             res = self.mapper.optimise()
         return MappingStep(kf, True, 1e3 * (time.perf_counter() - t0), res.changed_block_ids)
+
+    def _assign_blocks(self, kf: Keyframe) -> None:
+        """Make ``kf`` a keyframe of every block holding more than a tenth of its observed points (the
+        blocks whose newest keyframes get the extra N_a rays)."""
+        pts = torch.as_tensor(kf.observed_points(), dtype=torch.float32, device=self.block_map.device)
+        if len(pts):
+            share = self.block_map.contains(pts).float().mean(dim=0)  # (M,)
+            for block_id in (share > 0.1).nonzero(as_tuple=True)[0].tolist():
+                kf.block_ids.append(block_id)
+                self.block_map.blocks[block_id].keyframe_ids.append(kf.keyframe_id)
+
+    def correct_loop(self, poses: np.ndarray, start_id: int) -> MappingStep:
+        """Apply a loop correction: keyframe poses ``(K, 4, 4)`` (those after ``start_id`` moved), then
+        re-optimise in two stages, the paper's: the map with the poses fixed, then poses and map jointly
+        (keyframes up to ``start_id`` held). Blocks stay where they are in the world: the moved keyframes
+        are re-assigned to the blocks their points now fall in, and re-train those."""
+        t0 = time.perf_counter()
+        self.keyframes.set_poses(poses)
+        for kf in self.keyframes.keyframes[start_id + 1:]:
+            for block_id in kf.block_ids:
+                self.block_map.blocks[block_id].keyframe_ids.remove(kf.keyframe_id)
+            kf.block_ids = []
+            self._assign_blocks(kf)
+        for block in self.block_map.blocks:
+            block.keyframe_ids.sort()
+        c = self.cfg.loop
+        first = self.mapper.optimise(c.map_iterations, optimise_poses=False)
+        second = self.mapper.optimise(c.joint_iterations, optimise_poses=True, fixed_until=start_id)
+        return MappingStep(self.keyframes[len(self.keyframes) - 1], True, 1e3 * (time.perf_counter() - t0),
+                           first.changed_block_ids | second.changed_block_ids)
 
     def observed_points(self, rng: np.random.Generator, max_points: int = 2_000_000) -> np.ndarray:
         """World points of all keyframes' kept pixels (for mesh culling), float64 ``(K, 3)``."""
@@ -280,6 +306,8 @@ class Slam:
         self.block_map = new_block_map(cfg)
         self.frontend = Frontend(cfg, self.block_map, T_world_first)
         self.backend = Backend(cfg, self.block_map)
+        self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled else None
+        self.loops: list[LoopEvent] = []
 
     # ------------------------------------------------------------------ state
 
@@ -325,6 +353,24 @@ class Slam:
                 result.mapped = True
                 result.timings.map_ms = mapping.map_ms
                 self.frontend.set_keyframe_poses(self.keyframes.poses())
-                result.T_world_cam = self.pose_of(result.frame_index)
+            if self.loop_closer is not None:
+                t0 = time.perf_counter()
+                result.loop = self._close_loop(step)
+                result.timings.loop_ms = 1e3 * (time.perf_counter() - t0)
+            result.T_world_cam = self.pose_of(result.frame_index)
         result.timings.total_ms = 1e3 * (time.perf_counter() - t_start)
         return result
+
+    def _close_loop(self, step: FrontendStep) -> LoopEvent | None:
+        """Loop check of a new keyframe (the paper's last step of the loop); on an applied loop, correct
+        the keyframe poses and re-optimise the map."""
+        kid = step.keyframe_id
+        self.loop_closer.add_keyframe(kid, step.frame)
+        event, poses = self.loop_closer.close(kid, self.keyframes.poses(), step.frame)
+        if event is None:
+            return None
+        self.loops.append(event)
+        if event.applied:
+            self.backend.correct_loop(poses, event.start_id)
+            self.frontend.set_keyframe_poses(self.keyframes.poses())
+        return event

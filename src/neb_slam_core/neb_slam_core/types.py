@@ -86,7 +86,43 @@ class StepTimings:
     track_ms: float = 0.0
     allocate_ms: float = 0.0
     map_ms: float = 0.0
+    loop_ms: float = 0.0
     total_ms: float = 0.0
+
+
+@dataclass(frozen=True)
+class LoopEvent:
+    """A loop detected at keyframe ``query_id``, and what became of it.
+
+    Attributes:
+        query_id: the keyframe that closed the loop (the newest).
+        loop_ids: its loop keyframes (``r1``, then ``r2`` when there is one).
+        score: ``r1``'s similarity score.
+        applied: the correction was applied.
+        reason: why not ('' when applied).
+        correction_cm, correction_deg: how far the fitted pose is from the query's pose before.
+        rms_px_start, rms_px: the reprojection objective's RMS at the geometric check's pose and at the fit.
+    """
+
+    query_id: int
+    loop_ids: tuple[int, ...]
+    score: float
+    applied: bool
+    reason: str
+    correction_cm: float
+    correction_deg: float
+    rms_px_start: float
+    rms_px: float
+
+    @property
+    def start_id(self) -> int:
+        """The loop's older end: keyframes up to it keep their poses."""
+        return min(self.loop_ids)
+
+    def as_dict(self) -> dict:
+        return {"query_keyframe": self.query_id, "loop_keyframes": list(self.loop_ids), "score": self.score,
+                "applied": self.applied, "reason": self.reason, "correction_cm": self.correction_cm,
+                "correction_deg": self.correction_deg, "rms_px_start": self.rms_px_start, "rms_px": self.rms_px}
 
 
 @dataclass
@@ -105,6 +141,7 @@ class StepResult:
         mapped: a mapping (joint optimisation) step ran after this frame.
         n_blocks: blocks in the map after this frame.
         timings: per-stage times.
+        loop: the loop detected at this keyframe (applied or not), or None.
     """
 
     frame_index: int
@@ -118,3 +155,4 @@ class StepResult:
     mapped: bool = False
     n_blocks: int = 0
     timings: StepTimings = field(default_factory=StepTimings)
+    loop: LoopEvent | None = None

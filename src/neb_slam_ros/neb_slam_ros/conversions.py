@@ -162,8 +162,11 @@ def odometry_msg(T_world_cam: np.ndarray, ns: int, T_prev: np.ndarray | None, pr
     return msg
 
 
-def path_msg(stamps_ns, poses, frame_id: str) -> Path:
-    msg = Path(header=header(int(stamps_ns[-1]) if len(stamps_ns) else 0, frame_id))
+def path_msg(stamps_ns, poses, frame_id: str, stamp_ns: int | None = None) -> Path:
+    """A Path of ``poses`` (each stamped); its header has ``stamp_ns`` (default: the last pose's, else 0)."""
+    if stamp_ns is None:
+        stamp_ns = int(stamps_ns[-1]) if len(stamps_ns) else 0
+    msg = Path(header=header(int(stamp_ns), frame_id))
     msg.poses = [pose_msg(T, int(s), frame_id) for s, T in zip(stamps_ns, poses)]
     return msg
 

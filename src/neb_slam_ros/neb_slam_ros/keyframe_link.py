@@ -90,3 +90,52 @@ class KeyframeAssembler:
     @property
     def n_waiting(self) -> int:
         return len(self._parts) + len(self._complete)
+
+
+class KeyframeSubscriber:
+    """A node's ``keyframe/*`` subscriptions (the mapper's and the loop closer's input): the parts go into
+    :attr:`assembler` under the node's condition variable, which is notified; a worker thread pops complete
+    keyframes in order and turns them into frames with :meth:`frame`."""
+
+    def __init__(self, node, cond):
+        from geometry_msgs.msg import PoseStamped
+        from sensor_msgs.msg import CameraInfo, Image
+        from std_msgs.msg import String
+
+        from neb_slam_ros import qos
+
+        self.node = node
+        self._cond = cond
+        self.assembler = KeyframeAssembler()
+        kinds = {"rgb": Image, "depth": Image, "camera_info": CameraInfo, "pose": PoseStamped, "meta": String}
+        for part in KEYFRAME_PARTS:
+            node.create_subscription(kinds[part], f"keyframe/{part}", lambda m, p=part: self._on_part(p, m),
+                                     qos.keyframes())
+
+    def _on_part(self, part: str, msg) -> None:
+        from neb_slam_ros import conversions
+
+        topic = self.node.resolve_topic_name(f"keyframe/{part}")
+        if part == "meta":
+            try:
+                meta = KeyframeMeta.from_json(msg.data)
+            except ValueError as exc:
+                self.node.get_logger().error(f"{topic}: {exc}: keyframe ignored")
+                return
+            stamp, value = meta.stamp_ns, meta
+        else:
+            stamp, value = conversions.stamp_ns(msg), msg
+        with self._cond:
+            self.assembler.add(part, stamp, value)
+            self._cond.notify_all()
+
+    @staticmethod
+    def frame(parts: dict):
+        """The keyframe's :class:`~neb_slam_core.types.RgbdFrame` (rectified, as the tracker tracked it)."""
+        from neb_slam_ros import conversions
+
+        meta: KeyframeMeta = parts["meta"]
+        camera = conversions.camera_from_msg(parts["camera_info"], "keyframe/camera_info")
+        topics = ("keyframe/rgb", "keyframe/depth", "keyframe/camera_info")
+        frame, _ = conversions.frame_from_msgs(parts["rgb"], parts["depth"], camera, 1.0, topics, meta.frame_index)
+        return frame

@@ -2,7 +2,9 @@
 
 Subscribes the tracker's keyframes (``keyframe/*``, assembled by stamp) and integrates them in order with the
 engine's :class:`~neb_slam_core.slam.Backend`: the first keyframe initialises the map, keyframes marked
-``map_now`` run a joint optimisation step. After each step it publishes ``map_update`` (the changed
+``map_now`` run a joint optimisation step. A ``loop_closure`` from the loop closer (corrected poses of
+consecutive keyframes) is applied once those keyframes are integrated: keyframes after them move
+rigidly with the last, and the map is re-optimised in the paper's two stages. After each step it publishes ``map_update`` (the changed
 blocks, the decoders and the keyframe poses; layout in ``neb_slam_core/scene/map_update.py``). Every
 ``mesh_period_s`` it publishes ``mesh`` (one TRIANGLE_LIST marker per block). Services ``save_mesh`` and
 ``save_map`` write ``mesh.ply`` / ``map.pt`` into ``output_dir``; on shutdown (SIGINT, SIGTERM) it writes
@@ -25,15 +27,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import UInt8MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from neb_slam_core.geometry.se3 import invert
+from neb_slam_core.loop.correction import merge_correction
 from neb_slam_core.io.run_dir import MAP_FILE, TRAJECTORY_FILE, RunDirectory
 from neb_slam_core.io.trajectory import Trajectory
 from neb_slam_core.scene import map_update
@@ -41,7 +42,7 @@ from neb_slam_core.scene.persistence import save_map
 from neb_slam_core.slam import Backend, new_block_map
 from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import final_log, run_node
-from neb_slam_ros.keyframe_link import KeyframeAssembler, KeyframeMeta
+from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
 from neb_slam_ros.requests import Requests
 from neb_slam_ros.params import declare_config, declare_options, require
 
@@ -113,20 +114,21 @@ class MapperNode(Node):
         self.block_map = new_block_map(self.cfg)
         self.backend = Backend(self.cfg, self.block_map)
         self._rng = np.random.default_rng(self.cfg.seed)
-        self._assembler = KeyframeAssembler()
         self._cond = threading.Condition()
         self._requests = Requests(self._cond)
         self._stop = False
         self._version = 0
         self._unsent_blocks: set[int] = set()
         self._path: tuple[np.ndarray, np.ndarray] | None = None
+        self._loops: list[tuple[np.ndarray, np.ndarray]] = []  # corrections not applied yet
+        self._n_loops = 0
         self._n_mapping_steps = 0
         self._map_ms = 0.0
 
-        parts = {"rgb": Image, "depth": Image, "camera_info": CameraInfo, "pose": PoseStamped, "meta": String}
-        for part, kind in parts.items():
-            self.create_subscription(kind, f"keyframe/{part}", lambda m, p=part: self._on_part(p, m), qos.keyframes())
+        self._keyframes = KeyframeSubscriber(self, self._cond)
+        self._assembler = self._keyframes.assembler
         self.create_subscription(PathMsg, "path", self._on_path, qos.state())
+        self.create_subscription(PathMsg, "loop_closure", self._on_loop, qos.events(10))
         self.pub_update = self.create_publisher(UInt8MultiArray, "map_update", qos.events(10))
         self.pub_mesh = self.create_publisher(MarkerArray, "mesh", qos.state())
         self.create_service(Trigger, "save_mesh", lambda req, res: self._requests.serve("save_mesh", res))
@@ -140,36 +142,36 @@ class MapperNode(Node):
 
     # ------------------------------------------------------------------ callbacks (executor thread)
 
-    def _on_part(self, part: str, msg) -> None:
-        topic = self.resolve_topic_name(f"keyframe/{part}")
-        if part == "meta":
-            try:
-                meta = KeyframeMeta.from_json(msg.data)
-            except ValueError as exc:
-                self.get_logger().error(f"{topic}: {exc}: keyframe ignored")
-                return
-            stamp, value = meta.stamp_ns, meta
-        else:
-            stamp, value = conversions.stamp_ns(msg), msg
-        with self._cond:
-            self._assembler.add(part, stamp, value)
-            self._cond.notify_all()
-
     def _on_path(self, msg: PathMsg) -> None:
         stamps = np.array([conversions.stamp_ns(p) for p in msg.poses], dtype=np.int64)
         poses = np.stack([conversions.pose_from_msg(p, "path") for p in msg.poses]) if msg.poses else np.zeros((0, 4, 4))
         with self._cond:
             self._path = (stamps, poses)
 
+    def _on_loop(self, msg: PathMsg) -> None:
+        if not msg.poses:
+            return  # the loop closer checked a keyframe and found nothing to correct
+        try:
+            stamps = np.array([conversions.stamp_ns(p) for p in msg.poses], dtype=np.int64)
+            poses = np.stack([conversions.pose_from_msg(p, "loop_closure") for p in msg.poses])
+        except (ValueError, conversions.InputError) as exc:
+            self.get_logger().error(f"{self.resolve_topic_name('loop_closure')}: {exc}: correction ignored")
+            return
+        with self._cond:
+            self._loops.append((stamps, poses))
+            self._cond.notify_all()
+
     # ------------------------------------------------------------------ worker thread
 
     def _work(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._stop or self._requests or self._assembler.has_ready, timeout=1.0)
+                self._cond.wait_for(lambda: self._stop or self._requests or self._assembler.has_ready or self._loops,
+                                    timeout=1.0)
                 if self._stop:
                     return
                 ready = self._assembler.pop_ready()
+                loops, self._loops = self._loops, []
                 # requests are served after the keyframes that arrived before them
                 requests = self._requests.take()
             for parts in ready:
@@ -177,6 +179,10 @@ class MapperNode(Node):
                     self._integrate(parts)
                 except Exception as exc:  # never let one keyframe kill the mapper
                     self.get_logger().error(f"keyframe {parts['meta'].keyframe_id} failed: {type(exc).__name__}: {exc}")
+            waiting = [loop for loop in loops if not self._correct(*loop)]
+            if waiting:
+                with self._cond:  # their keyframes have not all arrived: after the next keyframes
+                    self._loops[:0] = waiting
             Requests.run(requests, self, self._stop)
 
     def _integrate(self, parts: dict) -> None:
@@ -184,9 +190,7 @@ class MapperNode(Node):
         for centre in meta.block_centres[len(self.block_map):]:
             block = self.block_map.add_block(torch.as_tensor(centre, dtype=torch.float32))
             self._unsent_blocks.add(block.block_id)
-        camera = conversions.camera_from_msg(parts["camera_info"], "keyframe/camera_info")
-        topics = ("keyframe/rgb", "keyframe/depth", "keyframe/camera_info")
-        frame, _ = conversions.frame_from_msgs(parts["rgb"], parts["depth"], camera, 1.0, topics, meta.frame_index)
+        frame = KeyframeSubscriber.frame(parts)
         step = self.backend.add_keyframe(frame, meta.T_world_cam, meta.frame_index, meta.map_now, meta.first)
         if step.keyframe.keyframe_id != meta.keyframe_id:
             self.get_logger().error(f"keyframe ids diverged: tracker {meta.keyframe_id}, mapper "
@@ -198,6 +202,26 @@ class MapperNode(Node):
             self._map_ms += step.map_ms
             self._publish_update(step.changed_block_ids | self._unsent_blocks, meta.stamp_ns)
             self._unsent_blocks.clear()
+
+    def _correct(self, stamps: np.ndarray, poses: np.ndarray) -> bool:
+        """Apply a loop correction (corrected poses of consecutive keyframes, named by stamp) and
+        re-optimise; False while some of its keyframes are not integrated yet (it is kept for later)."""
+        kfs = self.backend.keyframes
+        id_of = {int(kf.stamp_ns): kf.keyframe_id for kf in kfs.keyframes}
+        if any(int(s) not in id_of for s in stamps):
+            return False
+        ids = [id_of[int(s)] for s in stamps]
+        if ids != list(range(ids[0], ids[0] + len(ids))) or ids[0] == 0:
+            self.get_logger().error(f"loop_closure: keyframes {ids} are not consecutive keyframes after the "
+                                    "first: correction ignored")
+            return True
+        step = self.backend.correct_loop(merge_correction(kfs.poses(), ids[0], poses), ids[0] - 1)
+        self._n_loops += 1
+        self.get_logger().info(f"loop correction applied to keyframes {ids[0]}..{len(kfs) - 1}, map re-optimised "
+                               f"in {step.map_ms:.0f} ms")
+        self._publish_update(step.changed_block_ids | self._unsent_blocks, int(kfs[len(kfs) - 1].stamp_ns))
+        self._unsent_blocks.clear()
+        return True
 
     def _publish_update(self, block_ids, ack_stamp_ns: int) -> None:
         kfs = self.backend.keyframes
@@ -255,8 +279,10 @@ class MapperNode(Node):
             self._stop = True
             self._cond.notify_all()
         self._worker.join(timeout=600)
-        while self._assembler.has_ready:  # keyframes that arrived before the stop
+        while self._assembler.has_ready:  # keyframes and loop corrections that arrived before the stop
             self._integrate(self._assembler.pop_ready()[0])
+        for loop in self._loops:
+            self._correct(*loop)
         if len(self.backend.keyframes) == 0:
             final_log(self, "neb_slam mapper stopped before any keyframe: nothing to write", "WARN")
             return
@@ -271,7 +297,8 @@ class MapperNode(Node):
         except Exception as exc:
             final_log(self, f"mesh not written: {type(exc).__name__}: {exc}", "WARN")
         final_log(self, f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} blocks, "
-                 f"{self._n_mapping_steps} mapping steps ({self._map_ms / max(self._n_mapping_steps, 1):.0f} ms each); "
+                 f"{self._n_mapping_steps} mapping steps ({self._map_ms / max(self._n_mapping_steps, 1):.0f} ms each), "
+                 f"{self._n_loops} loop corrections; "
                  f"wrote {', '.join(Path(w).name for w in written)} to {self.out}")
 
 

@@ -2,15 +2,15 @@
 
 ``ros2 launch`` is not available as a wheel, so this small launcher starts the nodes as processes (the
 installed executables' modules, exactly what ``ros2 run`` starts), replays the bag in lockstep, stops the
-suite in order when the bag ends (mapper first: it finishes its keyframes and writes its files; then the
-tracker), and turns the mapper's output folder into a run directory with the layout of ``neb-slam run``:
+suite in order when the bag ends (the loop closer first: it checks its last keyframes; then the mapper:
+it finishes its keyframes and loop corrections and writes its files; then the tracker), and turns the mapper's output folder into a run directory with the layout of ``neb-slam run``:
 ``trajectory.txt``, ``groundtruth.txt``, ``mesh.ply``, ``map.pt``, ``metrics.json`` and the plots.
 
     python -m neb_slam_ros.suite bags/demo_scene_bag --config synthetic --out runs/demo
     python -m neb_slam_ros.suite bags/fr1_xyz --config tum --one-process
 
-Separate processes: ``tracker``, ``mapper``, ``bag_replay`` (``loop_closer`` joins when loop closure lands
-in the engine). ``--one-process``: the ``slam`` executable with the replay inside.
+Separate processes: ``tracker``, ``mapper``, ``loop_closer``, ``bag_replay``. ``--one-process``: the
+``slam`` executable with the replay inside.
 """
 
 from __future__ import annotations
@@ -77,7 +77,8 @@ def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_
         plan = {"slam": {**engine, **camera, **replay, "output_dir": str(out), "mesh_period_s": mesh_period_s}}
     else:
         plan = {"mapper": {**engine, "output_dir": str(out), "mesh_period_s": mesh_period_s},
-                "tracker": {**engine, **camera},
+                "loop_closer": engine,
+                "tracker": {**engine, **camera, "loop_sync": True},
                 "bag_replay": replay}
     procs: dict[str, subprocess.Popen] = {}
     run = SuiteRun(out, {}, 0.0)
@@ -90,7 +91,9 @@ def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_
         driver = "slam" if one_process else "bag_replay"
         run.exit_codes[driver] = procs[driver].wait()  # the replay ends the process when the bag ends
         run.wall_s = time.perf_counter() - t0
-        for node in ("mapper", "tracker"):  # the mapper finishes its keyframes, then writes its files
+        # the loop closer checks its last keyframes, then the mapper finishes its keyframes and corrections
+        # and writes its files
+        for node in ("loop_closer", "mapper", "tracker"):
             if node in procs:
                 procs[node].send_signal(signal.SIGINT)
                 run.exit_codes[node] = procs[node].wait(STOP_TIMEOUT_S)

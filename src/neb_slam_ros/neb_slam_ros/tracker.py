@@ -5,7 +5,8 @@ each frame against its copy of the map (the engine's :class:`~neb_slam_core.slam
 ``pose``, ``odometry``, ``path``, the keyframes (``keyframe/*``) and the blocks (``blocks``). The map comes
 from the mapper's ``map_update`` messages. Before frame 2 it waits for the mapper's first update; with
 ``map_sync`` (default) it also waits, after each keyframe that triggers mapping, for the update that
-integrates it, so it computes exactly what the one-process engine computes. Frames that arrive meanwhile
+integrates it, so it computes exactly what the one-process engine computes; with ``loop_sync`` it waits,
+after each keyframe, for the loop closer's verdict on it as well. Frames that arrive meanwhile
 are queued (``frame_queue`` of them; older ones are dropped with a counted warning; lockstep replay never
 queues more than one).
 
@@ -47,13 +48,15 @@ class TrackerOptions:
     """The tracker's own parameters (the camera input's are :class:`InputOptions`, the engine's the config)."""
 
     map_sync: bool = True
+    loop_sync: bool = False
     map_timeout_s: float = 600.0
     initial_pose_timeout_s: float = 10.0
     frame_id: str = "map"
 
     PARAMETER_DOCS = {
         "map_sync": "after a keyframe that triggers mapping, wait for its map update before the next frame",
-        "map_timeout_s": "warn when an awaited map update takes longer than this",
+        "loop_sync": "after each keyframe, wait for the loop closer's verdict on it (needs a loop_closer running)",
+        "map_timeout_s": "warn when an awaited map update or loop verdict takes longer than this",
         "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
         "frame_id": "frame of the published poses",
     }
@@ -82,11 +85,15 @@ class TrackerNode(Node):
         self._n_dropped = 0
         self._awaited_ack: int | None = None  # stamp of the keyframe whose map update we wait for
         self._acked = -1
+        self._awaited_loop: int | None = None  # stamp of the keyframe whose loop verdict we wait for
+        self._loop_checked = -1
         self._map_version = 0
         self._prev: tuple[np.ndarray, int] | None = None
 
         self.input = CameraInput(self, self.input_opt, self._on_frame)
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
+        if self.opt.loop_sync:
+            self.create_subscription(Path, "loop_closure", self._on_loop_verdict, qos.events(10))
         self.pub_pose = self.create_publisher(PoseStamped, "pose", qos.stream())
         self.pub_odom = self.create_publisher(Odometry, "odometry", qos.stream())
         self.pub_path = self.create_publisher(Path, "path", qos.state())
@@ -125,10 +132,17 @@ class TrackerNode(Node):
             self._updates.append(update)
             self._cond.notify_all()
 
+    def _on_loop_verdict(self, msg: Path) -> None:
+        with self._cond:  # the corrected poses themselves come with the mapper's next map update
+            self._loop_checked = max(self._loop_checked, conversions.stamp_ns(msg))
+            self._cond.notify_all()
+
     # ------------------------------------------------------------------ worker thread
 
     def _waiting_for_map(self) -> bool:
-        return self._awaited_ack is not None and self._acked < self._awaited_ack
+        """A map update or a loop verdict the next frame has to wait for has not come yet."""
+        return ((self._awaited_ack is not None and self._acked < self._awaited_ack)
+                or (self._awaited_loop is not None and self._loop_checked < self._awaited_loop))
 
     def _work(self) -> None:
         waited_since = None
@@ -146,8 +160,9 @@ class TrackerNode(Node):
             if self._waiting_for_map():
                 waited_since = waited_since or time.monotonic()
                 if time.monotonic() - waited_since > self.opt.map_timeout_s:
-                    self.get_logger().warning(f"no map update for keyframe {self._awaited_ack} after "
-                                              f"{self.opt.map_timeout_s:.0f} s: is the mapper running?")
+                    self.get_logger().warning(f"no map update or loop verdict for keyframe {self._awaited_ack} "
+                                              f"after {self.opt.map_timeout_s:.0f} s: are the mapper and (with "
+                                              "loop_sync) the loop closer running?")
                     waited_since = time.monotonic()
             else:
                 waited_since = None
@@ -194,9 +209,11 @@ class TrackerNode(Node):
             self.pub_blocks.publish(conversions.block_markers(self._centres(), self.cfg.block.edge_m, r.stamp_ns, fid))
         if step.keyframe_id is not None:
             self._publish_keyframe(step)
-        if step.map_now and (self.opt.map_sync or step.first):
-            with self._cond:
+        with self._cond:
+            if step.map_now and (self.opt.map_sync or step.first):
                 self._awaited_ack = r.stamp_ns
+            if step.keyframe_id is not None and self.opt.loop_sync:
+                self._awaited_loop = r.stamp_ns
         prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
         self.pub_odom.publish(conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, fid, "camera"))
         self._prev = (r.T_world_cam, r.stamp_ns)

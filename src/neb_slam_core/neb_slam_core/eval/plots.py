@@ -7,6 +7,7 @@ they hold no global state and work on a headless machine; :func:`save_figure` wr
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -30,10 +31,13 @@ def top_view_axes(positions: np.ndarray) -> tuple[int, int]:
     return int(a), int(b)
 
 
-def plot_trajectory(ate: AteResult, title: str | None = None) -> Figure:
+def plot_trajectory(ate: AteResult, title: str | None = None,
+                    loops: Sequence[tuple[int, int, bool]] = ()) -> Figure:
     """Top view of the aligned estimate against the ground truth, with start markers and error segments.
 
-    The view is the plane of the two axes along which the ground truth extends most.
+    The view is the plane of the two axes along which the ground truth extends most. ``loops``: loop
+    closures as ``(stamp_ns, loop_stamp_ns, applied)``, drawn as a segment between the two estimated
+    positions (solid: applied, dotted: detected but not applied); stamps not in ``ate`` are left out.
     """
     gt = ate.gt_poses[:, :3, 3]
     est = ate.aligned_poses[:, :3, 3]
@@ -47,6 +51,15 @@ def plot_trajectory(ate: AteResult, title: str | None = None) -> Figure:
     ax.plot(est[:, a], est[:, b], color="tab:blue", linewidth=1.2, label="estimate (aligned)", zorder=3)
     ax.scatter([gt[0, a]], [gt[0, b]], marker="o", s=60, facecolors="none", edgecolors="black", zorder=4, label="start")
     ax.scatter([est[0, a]], [est[0, b]], marker="x", s=40, color="tab:blue", zorder=4)
+    where = {int(s): i for i, s in enumerate(ate.stamps_ns)}
+    labelled: set[bool] = set()
+    for stamp, loop_stamp, applied in loops:
+        if int(stamp) in where and int(loop_stamp) in where:
+            p, q = est[where[int(stamp)]], est[where[int(loop_stamp)]]
+            label = None if applied in labelled else ("loop closure" if applied else "loop (not applied)")
+            labelled.add(applied)
+            ax.plot([p[a], q[a]], [p[b], q[b]], color="tab:red", linestyle="-" if applied else ":",
+                    linewidth=1.5, marker="o", markersize=3, zorder=5, label=label)
     ax.set_xlabel(f"{_AXIS_NAMES[a]} [m]")
     ax.set_ylabel(f"{_AXIS_NAMES[b]} [m]")
     ax.set_aspect("equal", adjustable="datalim")

@@ -74,11 +74,12 @@ def recon_metrics(recon) -> dict:
     }
 
 
-def write_trajectory_plots(ate, out_dir: Path) -> list[Path]:
-    """``trajectory.png`` and ``ate_over_time.png`` of ``ate`` in ``out_dir``; returns their paths."""
+def write_trajectory_plots(ate, out_dir: Path, loops=()) -> list[Path]:
+    """``trajectory.png`` (with ``loops`` marked, see :func:`~neb_slam_core.eval.plots.plot_trajectory`)
+    and ``ate_over_time.png`` of ``ate`` in ``out_dir``; returns their paths."""
     from .plots import plot_ate_over_time, plot_trajectory, save_figure
 
-    return [save_figure(plot_trajectory(ate), out_dir / "trajectory.png"),
+    return [save_figure(plot_trajectory(ate, loops=loops), out_dir / "trajectory.png"),
             save_figure(plot_ate_over_time(ate), out_dir / "ate_over_time.png")]
 
 

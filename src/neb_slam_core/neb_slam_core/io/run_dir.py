@@ -13,7 +13,10 @@
         mesh.ply           the reconstruction, world frame, vertex colours
         metrics.json       the run's figures (:func:`run_metrics`), with ground truth ATE / RPE (the
                            figures of ``neb-slam eval``), with a ground-truth mesh the reconstruction metrics
-        trajectory.png, ate_over_time.png    with ground truth (as ``neb-slam eval`` draws them)
+        loops.json         every loop detected (:func:`loop_log`): frames, score, whether it was applied
+                           and why not, the size of the correction
+        trajectory.png, ate_over_time.png    with ground truth (as ``neb-slam eval`` draws them; loops
+                           marked on the trajectory)
         blocks.png         the block allocation, top view (:func:`~neb_slam_core.eval.plots.plot_block_allocation`)
 
 :func:`write_run` writes them all from a :class:`~neb_slam_core.slam.Slam` and the :class:`RunLog` the
@@ -55,12 +58,13 @@ TIMINGS_FILE = "timings.csv"
 MAP_FILE = "map.pt"
 MESH_FILE = "mesh.ply"
 METRICS_FILE = "metrics.json"
+LOOPS_FILE = "loops.json"
 BLOCKS_PLOT_FILE = "blocks.png"
 
 #: columns of timings.csv: the input frame index, its stamp (integer ns), the engine's per-stage times
 #: (ms), whether it became a keyframe, the id of the block it allocated (empty: none), whether tracking
 #: succeeded, then the allocation ratio tau, the blocks in the map after it and the failure reason.
-TIMINGS_COLUMNS = ("index", "stamp_ns", "track_ms", "allocate_ms", "map_ms", "total_ms", "keyframe", "new_block",
+TIMINGS_COLUMNS = ("index", "stamp_ns", "track_ms", "allocate_ms", "map_ms", "loop_ms", "total_ms", "keyframe", "new_block",
                    "tracking_ok", "tau", "n_blocks", "failure_reason")
 
 #: how a run ended, as stored in metrics.json ``status``
@@ -209,9 +213,12 @@ class RunDirectory:
                 continue
             t = r.timings
             writer.writerow([f.index, f.stamp_ns, f"{t.track_ms:.3f}", f"{t.allocate_ms:.3f}", f"{t.map_ms:.3f}",
-                             f"{t.total_ms:.3f}", int(r.is_keyframe), "" if r.new_block_id is None else r.new_block_id,
+                             f"{t.loop_ms:.3f}", f"{t.total_ms:.3f}", int(r.is_keyframe), "" if r.new_block_id is None else r.new_block_id,
                              int(r.tracking_ok), f"{r.tau:.4f}", r.n_blocks, r.failure_reason])
         return self._write_text(TIMINGS_FILE, buf.getvalue())
+
+    def write_loops(self, loops: list[dict]) -> Path:
+        return self._write_text(LOOPS_FILE, json.dumps(_json_safe(loops), indent=2) + "\n")
 
     def write_metrics(self, metrics: dict) -> Path:
         return self._write_text(METRICS_FILE, json.dumps(_json_safe(metrics), indent=2, sort_keys=True) + "\n")
@@ -260,6 +267,25 @@ def map_extra(slam: "Slam", frames: list[FrameLog]) -> dict:
     }
 
 
+def loop_log(slam: "Slam", frames: list[FrameLog]) -> list[dict]:
+    """Every loop the engine detected, in order: :meth:`~neb_slam_core.types.LoopEvent.as_dict` plus the
+    input frame index and stamp of the query keyframe (``frame``, ``stamp_ns``) and of its loop
+    keyframes (``loop_frames``, ``loop_stamps_ns``)."""
+    kfs = slam.keyframes.keyframes
+
+    def frame_of(keyframe_id: int) -> int:
+        return frames[kfs[keyframe_id].frame_index].index
+
+    out = []
+    for event in slam.loops:
+        entry = {"frame": frame_of(event.query_id), "stamp_ns": int(kfs[event.query_id].stamp_ns)}
+        entry.update(event.as_dict())
+        entry["loop_frames"] = [frame_of(i) for i in event.loop_ids]
+        entry["loop_stamps_ns"] = [int(kfs[i].stamp_ns) for i in event.loop_ids]
+        out.append(entry)
+    return out
+
+
 def run_metrics(slam: "Slam", frames: list[FrameLog], wall_s: float, status: str) -> dict:
     """The run's own figures (no ground truth needed).
 
@@ -269,7 +295,8 @@ def run_metrics(slam: "Slam", frames: list[FrameLog], wall_s: float, status: str
     ``wall_s_per_frame``: wall-clock time of the loop (reading included) per finished frame;
     ``track_ms_mean``: mean tracking time over the tracked frames (all but the first);
     ``map_ms_mean``: mapping time per frame, i.e. the total (the first frame's initialisation included)
-    spread over all finished frames; ``n_tracking_failures``: frames whose tracking failed.
+    spread over all finished frames; ``n_tracking_failures``: frames whose tracking failed;
+    ``n_loops_detected`` / ``n_loops_applied``: loops found, and corrections applied.
     """
     done = [f.result for f in frames if f.result is not None]
     n = len(done)
@@ -291,6 +318,9 @@ def run_metrics(slam: "Slam", frames: list[FrameLog], wall_s: float, status: str
         "allocate_ms_mean": mean([r.timings.allocate_ms for r in done]),
         "map_ms_mean": None if n == 0 else sum(r.timings.map_ms for r in done) / n,
         "n_mapping_steps": sum(r.mapped for r in done),
+        "loop_ms_mean": None if n == 0 else sum(r.timings.loop_ms for r in done) / n,
+        "n_loops_detected": len(slam.loops),
+        "n_loops_applied": sum(e.applied for e in slam.loops),
     }
 
 
@@ -335,6 +365,8 @@ def write_run(run_dir: RunDirectory, slam: "Slam", run_log: RunLog, options: Run
     if len(gt):
         summary.written.append(run_dir.write_trajectory(gt, GROUNDTRUTH_FILE, "ground truth of the processed frames"))
     summary.written.append(run_dir.write_timings(frames))
+    loops = loop_log(slam, frames)
+    summary.written.append(run_dir.write_loops(loops))
 
     metrics = run_metrics(slam, frames, wall_s, status)
     ate = None
@@ -349,7 +381,8 @@ def write_run(run_dir: RunDirectory, slam: "Slam", run_log: RunLog, options: Run
     summary.written.append(run_dir.write_metrics(metrics))
 
     if ate is not None:
-        summary.written += write_trajectory_plots(ate, run_dir.path)
+        marks = [(e["stamp_ns"], s, e["applied"]) for e in loops for s in e["loop_stamps_ns"]]
+        summary.written += write_trajectory_plots(ate, run_dir.path, marks)
     alloc_index, alloc_xyz = block_allocations(slam, frames, traj)
     fig = plot_block_allocation(traj.positions, slam.block_map.centres().detach().cpu().double().numpy().reshape(-1, 3),
                                 slam.block_map.block_cfg.edge_m, alloc_index, alloc_xyz)

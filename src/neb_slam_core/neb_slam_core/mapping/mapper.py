@@ -61,8 +61,11 @@ class Mapper:
     def _blocks_with_gradient(self) -> set[int]:
         return {b.block_id for b in self.block_map.blocks if b.grid.table.grad is not None}
 
-    def optimise(self, iterations: int | None = None, optimise_poses: bool | None = None) -> MappingResult:
-        """``iterations`` joint steps over all keyframes plus the newest block's keyframes."""
+    def optimise(self, iterations: int | None = None, optimise_poses: bool | None = None,
+                 fixed_until: int = 0) -> MappingResult:
+        """``iterations`` joint steps over all keyframes plus the newest block's keyframes; keyframes
+        ``0..fixed_until`` keep their poses (keyframe 0 anchors the world frame; a loop correction also
+        holds the keyframes up to the loop's older end)."""
         iterations = self.cfg.iterations if iterations is None else iterations
         optimise_poses = self.cfg.optimise_poses if optimise_poses is None else optimise_poses
         kfs = self.keyframes
@@ -71,7 +74,7 @@ class Mapper:
         dirs, rgb, depth, owner = kfs.flat()
         poses = PoseSet(kfs.poses()).to(dirs.device)
         pose_opt = None
-        if optimise_poses and len(kfs) > 1:
+        if optimise_poses and len(kfs) > fixed_until + 1:
             pose_opt = torch.optim.Adam([poses.delta], lr=self.cfg.pose_lr)
         newest_kfs = self.block_map.blocks[-1].keyframe_ids if len(self.block_map) > 1 else []
         loss_value = float("nan")
@@ -91,7 +94,7 @@ class Mapper:
             changed |= self._blocks_with_gradient()
             self.map_opt.step()
             if pose_opt is not None:
-                poses.delta.grad[0] = 0.0  # the first keyframe anchors the world frame
+                poses.delta.grad[:fixed_until + 1] = 0.0  # a fresh Adam moves no zero-gradient pose
                 pose_opt.step()
             loss_value = float(loss.total.detach())
         if pose_opt is not None:

@@ -1,0 +1,251 @@
+"""Loop correction: the current keyframe's pose by the paper's reprojection objective, then the
+correction spread along the keyframes of the loop.
+
+Reprojection objective (paper, "Loop Closure", its equation for T_c): a pixel ``u_j`` of the current
+keyframe with depth ``d_j`` becomes the world point ``P_j = T_c pi^-1(u_j, d_j)``; projected into loop
+keyframe ``r``, it lands on ``u_rj = pi(T_r^-1 P_j)``, where that keyframe's depth map, interpolated,
+gives ``d'_rj``; the point ``pi'^-1(u_rj, d'_rj)`` taken back through ``T_c^-1 T_r`` projects to
+``u'_rj`` in the current keyframe, and ``T_c`` minimises ``sum_r sum_j |u'_rj - u_j|^2``. It is a
+projective point-to-surface alignment: with the right pose the loop keyframe's surface passes through
+``P_j`` and the point comes back to its own pixel.
+
+One addition of ours: the surface point differs from ``P_j`` only along loop keyframe ``r``'s ray, so
+``u'_rj - u_j`` sees that difference only through the parallax between the two views. A loop keyframe
+is typically close to the current one (that is why it was found): on a box corner seen from 10-40 cm
+away at 2-4 m, a pose 7 cm and 2 degrees off leaves 0.2 px RMS, and the minimiser stops 4 cm from the
+truth. So each pair also has the depth disagreement itself, ``d'_rj - z_rj`` (``z_rj`` = the depth of
+``P_j`` in ``r``), expressed in pixels as ``f (d'_rj - z_rj) / z_rj``: what the paper's term would show
+if ``r`` looked at the point from the side. With it the fit converges to the pose (see the tests).
+
+We solve it with scipy's trust-region least squares on a 6-vector (rotation vector and translation),
+robustly (:func:`fit_loop_pose`): occlusions and depth edges give a few large residuals that a plain
+square would follow.
+
+Depth interpolation is bilinear where all four neighbours have depth; elsewhere the residual is zero
+(and the pixel does not count as valid). Depth maps are kept at a stride (``LoopConfig.depth_stride``)
+with intrinsics scaled to match.
+
+Propagation: ``Delta = T_c_new T_c_old^-1`` moves the current keyframe. Keyframes after the loop's
+older end get a share ``w`` of it, ``w`` growing with the path length travelled since that end (0 at
+it, 1 at the current keyframe): rotation ``exp(w log R_Delta)`` about the current keyframe's old
+position plus ``w`` times its displacement. Rotating about that point rather than the world origin
+keeps the keyframes near the current one close to where the full correction puts the current one.
+Consecutive keyframes keep their relative poses up to the small difference of their shares;
+keyframes after the current one (a loop closed while tracking went on) move rigidly with it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from ..geometry.se3 import invert, make_pose
+from ..types import Intrinsics
+
+
+@dataclass(frozen=True)
+class DepthView:
+    """A keyframe as the correction sees it: pose and depth map (metres, 0 = none) with its camera."""
+
+    T_world_cam: np.ndarray
+    depth_m: np.ndarray
+    intrinsics: Intrinsics
+
+
+@dataclass(frozen=True)
+class PoseFit:
+    """Outcome of :func:`fit_loop_pose`.
+
+    Attributes:
+        T_world_cam: the optimised pose of the current keyframe.
+        rms_px_start, rms_px: RMS of the paper's reprojection error (pixels, over valid pairs) at the start
+            and at the end.
+        n_valid: pixel/loop-keyframe pairs with a valid residual at the end.
+        n_pixels: pixels of the current keyframe used.
+    """
+
+    T_world_cam: np.ndarray
+    rms_px_start: float
+    rms_px: float
+    n_valid: int
+    n_pixels: int
+
+
+def strided_view(T_world_cam: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, stride: int) -> DepthView:
+    """A :class:`DepthView` keeping every ``stride``-th depth pixel (nearest: no blending across edges)."""
+    depth = np.ascontiguousarray(np.asarray(depth_m, dtype=np.float32)[::stride, ::stride])
+    k = intrinsics
+    h, w = depth.shape
+    # pixel centres: strided pixel i is full-resolution pixel stride * i
+    scaled = Intrinsics(k.fx / stride, k.fy / stride, k.cx / stride, k.cy / stride, w, h)
+    return DepthView(np.array(T_world_cam, dtype=np.float64), depth, scaled)
+
+
+def sample_pixels(depth_m: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``n`` random pixels ``(N, 2)`` (u, v) with valid depth, and their depths ``(N,)``."""
+    v, u = np.nonzero(np.asarray(depth_m) > 0)
+    if len(u) > n:
+        keep = rng.choice(len(u), n, replace=False)
+        u, v = u[keep], v[keep]
+    return np.stack([u, v], axis=1).astype(np.float64), np.asarray(depth_m)[v, u].astype(np.float64)
+
+
+def _project(points_cam: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    z = points_cam[:, 2]
+    in_front = z > 1e-6
+    z = np.where(in_front, z, 1.0)
+    return np.stack([k.fx * points_cam[:, 0] / z + k.cx, k.fy * points_cam[:, 1] / z + k.cy], axis=1), in_front
+
+
+def _backproject(pixels: np.ndarray, depth: np.ndarray, k: Intrinsics) -> np.ndarray:
+    return np.stack([(pixels[:, 0] - k.cx) / k.fx * depth, (pixels[:, 1] - k.cy) / k.fy * depth, depth], axis=1)
+
+
+class _Interpolator:
+    """Bilinear depth lookup of one view, valid only where the four neighbours all have depth.
+
+    In float64 numpy rather than ``cv2.remap``, whose weights are quantised to 1/32 px: the least
+    squares differentiates the residuals numerically, and a piecewise-constant lookup has no slope."""
+
+    def __init__(self, depth_m: np.ndarray):
+        self.depth = np.asarray(depth_m, dtype=np.float64)
+
+    def __call__(self, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        h, w = self.depth.shape
+        x, y = pixels[:, 0], pixels[:, 1]
+        inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+        x0 = np.clip(np.floor(x), 0, w - 2).astype(np.int64)
+        y0 = np.clip(np.floor(y), 0, h - 2).astype(np.int64)
+        fx, fy = np.clip(x - x0, 0.0, 1.0), np.clip(y - y0, 0.0, 1.0)
+        d00, d01 = self.depth[y0, x0], self.depth[y0, x0 + 1]
+        d10, d11 = self.depth[y0 + 1, x0], self.depth[y0 + 1, x0 + 1]
+        d = (d00 * (1 - fx) + d01 * fx) * (1 - fy) + (d10 * (1 - fx) + d11 * fx) * fy
+        ok = inside & (d00 > 0) & (d01 > 0) & (d10 > 0) & (d11 > 0)
+        return np.where(ok, d, 0.0), ok
+
+
+def reprojection_residuals(T_world_cur: np.ndarray, pixels: np.ndarray, depths: np.ndarray, intrinsics: Intrinsics,
+                           views: list[DepthView], _lookups: list[_Interpolator] | None = None
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """The loop residuals for every view ``r`` and pixel ``j``: the paper's ``u'_rj - u_j`` and the depth
+    disagreement in pixels (see the module docstring).
+
+    Returns:
+        ``(R, N, 3)`` residuals in pixels (0 where invalid) and the ``(R, N)`` validity mask.
+    """
+    lookups = _lookups or [_Interpolator(v.depth_m) for v in views]
+    points_world = _backproject(pixels, depths, intrinsics) @ T_world_cur[:3, :3].T + T_world_cur[:3, 3]
+    T_cur_world = invert(T_world_cur)
+    res = np.zeros((len(views), len(pixels), 3))
+    valid = np.zeros((len(views), len(pixels)), bool)
+    for r, (view, lookup) in enumerate(zip(views, lookups)):
+        T_r_world = invert(view.T_world_cam)
+        in_r = points_world @ T_r_world[:3, :3].T + T_r_world[:3, 3]
+        u_r, front = _project(in_r, view.intrinsics)
+        d_r, ok = lookup(u_r)
+        ok &= front & (d_r > 0)
+        surface_r = _backproject(u_r, d_r, view.intrinsics)
+        T_cur_r = T_cur_world @ view.T_world_cam
+        back = surface_r @ T_cur_r[:3, :3].T + T_cur_r[:3, 3]
+        u_back, front_back = _project(back, intrinsics)
+        ok &= front_back
+        z_r = np.where(front, in_r[:, 2], 1.0)
+        depth_px = intrinsics.fx * (d_r - z_r) / z_r
+        res[r] = np.where(ok[:, None], np.concatenate([u_back - pixels, depth_px[:, None]], axis=1), 0.0)
+        valid[r] = ok
+    return res, valid
+
+
+def fit_loop_pose(T_world_init: np.ndarray, pixels: np.ndarray, depths: np.ndarray, intrinsics: Intrinsics,
+                  views: list[DepthView], loss_scale_px: float = 1.0, min_scale_px: float = 0.05, rounds: int = 3,
+                  max_evaluations: int = 100) -> PoseFit:
+    """Minimise the loop objective over the current keyframe's pose, from ``T_world_init`` (the
+    geometric check's estimate), for ``(N, 2)`` pixels with ``(N,)`` depths.
+
+    Robust, coarse to fine: a Cauchy loss (its pull vanishes for large residuals: occluded pixels and
+    depth edges, a few percent of the pairs, do not bias the pose as a soft-L1 one's bounded pull does:
+    1.6 cm off on the synthetic loop) of scale ``loss_scale_px`` first, then ``rounds - 1`` times of
+    scale twice the residuals' robust spread (1.4826 x median absolute residual) at the last pose,
+    clipped to [``min_scale_px``, ``loss_scale_px``]: exact synthetic depth ends at the floor, real
+    depth at its own noise level.
+    """
+    lookups = [_Interpolator(v.depth_m) for v in views]
+    R0, t0 = T_world_init[:3, :3], T_world_init[:3, 3]
+
+    def pose(x: np.ndarray) -> np.ndarray:
+        return make_pose(Rotation.from_rotvec(x[:3]).as_matrix() @ R0, t0 + x[3:])
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return reprojection_residuals(pose(x), pixels, depths, intrinsics, views, lookups)[0].ravel()
+
+    def rms(T: np.ndarray) -> tuple[float, int, np.ndarray]:
+        r, ok = reprojection_residuals(T, pixels, depths, intrinsics, views, lookups)
+        n = int(ok.sum())
+        return (float(np.sqrt((r[ok][:, :2] ** 2).sum(axis=1).mean())) if n else float("inf")), n, r[ok]
+
+    rms_start, _, _ = rms(T_world_init)
+    x, scale = np.zeros(6), loss_scale_px
+    for round_ in range(rounds):
+        if round_ > 0:
+            _, n, r = rms(pose(x))
+            spread = 1.4826 * float(np.median(np.abs(r))) if n else loss_scale_px
+            scale = float(np.clip(2.0 * spread, min_scale_px, loss_scale_px))
+        x = least_squares(residuals, x, loss="cauchy", f_scale=scale, max_nfev=max_evaluations,
+                          x_scale=np.full(6, 1e-2), diff_step=1e-6).x
+    T = pose(x)
+    rms_end, n_valid, _ = rms(T)
+    return PoseFit(T, rms_start, rms_end, n_valid, len(pixels))
+
+
+def interpolate_correction(delta: np.ndarray, pivot: np.ndarray, w: float) -> np.ndarray:
+    """The share ``w`` in [0, 1] of the rigid correction ``delta`` (4x4): rotation ``exp(w log R)``
+    about ``pivot`` (3,) plus ``w`` times the displacement of ``pivot``. ``w = 1`` gives ``delta``."""
+    R = Rotation.from_matrix(delta[:3, :3])
+    R_w = Rotation.from_rotvec(w * R.as_rotvec()).as_matrix()
+    displacement = delta[:3, :3] @ pivot + delta[:3, 3] - pivot
+    return make_pose(R_w, pivot - R_w @ pivot + w * displacement)
+
+
+def propagate_correction(poses: np.ndarray, start_id: int, end_id: int, T_end_new: np.ndarray) -> np.ndarray:
+    """Keyframe poses ``(K, 4, 4)`` after moving keyframe ``end_id`` to ``T_end_new``, the loop's older
+    end ``start_id`` and every keyframe before it held (see the module docstring)."""
+    poses = np.array(poses, dtype=np.float64)
+    if not 0 <= start_id < end_id < len(poses):
+        raise ValueError(f"propagate_correction: need 0 <= start_id ({start_id}) < end_id ({end_id}) < {len(poses)}")
+    delta = T_end_new @ invert(poses[end_id])
+    pivot = poses[end_id][:3, 3].copy()
+    steps = np.linalg.norm(np.diff(poses[start_id:end_id + 1, :3, 3], axis=0), axis=1)
+    travelled = np.concatenate([[0.0], np.cumsum(steps)])
+    shares = travelled / travelled[-1] if travelled[-1] > 0 else np.linspace(0.0, 1.0, len(travelled))
+    out = poses.copy()
+    for offset, w in enumerate(shares[1:], start=1):
+        k = start_id + offset
+        out[k] = interpolate_correction(delta, pivot, float(w)) @ poses[k]
+    out[end_id] = np.array(T_end_new, dtype=np.float64)  # exact, whatever rounding the share had
+    out[end_id + 1:] = delta @ poses[end_id + 1:]
+    return out
+
+
+def correction_size(T_old: np.ndarray, T_new: np.ndarray) -> tuple[float, float]:
+    """Translation (cm) and rotation (degrees) between two poses of one camera."""
+    E = invert(T_old) @ T_new
+    return float(np.linalg.norm(E[:3, 3]) * 100.0), float(np.degrees(Rotation.from_matrix(E[:3, :3]).magnitude()))
+
+
+def merge_correction(poses: np.ndarray, first_id: int, corrected: np.ndarray) -> np.ndarray:
+    """Keyframe poses ``(K, 4, 4)`` with keyframes ``first_id .. first_id + n - 1`` replaced by the ``(n, 4, 4)``
+    ``corrected`` ones (a loop correction computed elsewhere, e.g. by another process) and the keyframes
+    after them, which that computation did not know, moved rigidly with the last of them."""
+    poses = np.array(poses, dtype=np.float64)
+    corrected = np.asarray(corrected, dtype=np.float64).reshape(-1, 4, 4)
+    end = first_id + len(corrected) - 1
+    if len(corrected) == 0 or not 0 < first_id <= end < len(poses):
+        raise ValueError(f"merge_correction: keyframes {first_id}..{end} are not after the first of {len(poses)}")
+    delta = corrected[-1] @ invert(poses[end])
+    out = poses.copy()
+    out[first_id:end + 1] = corrected
+    out[end + 1:] = delta @ poses[end + 1:]
+    return out

@@ -1,0 +1,76 @@
+"""Loop closer: a drifted end of the synthetic loop is detected against its start and put back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from neb_slam_core.config import LoopConfig
+from neb_slam_core.geometry.se3 import make_pose
+from neb_slam_core.loop.closer import LoopCloser
+from neb_slam_core.types import RgbdFrame
+
+from loop_scene import FRAME_NS, LOOP_FRAMES, pose_error
+
+#: the drift the end of the loop (frames 270-290) carries: 25 cm and 4 degrees about the vertical,
+#: applied in the world frame (what accumulated tracking error looks like)
+DRIFT = make_pose(Rotation.from_euler("y", 4.0, degrees=True).as_matrix(), [0.20, 0.0, -0.15])
+
+
+def frame_of(views, intr, f: int) -> RgbdFrame:
+    view = views[f][0]
+    return RgbdFrame(view.rgb, view.depth_m, intr, f * FRAME_NS)
+
+
+@pytest.fixture(scope="module")
+def closed(vocabulary, loop_views):
+    """Keyframes of the loop added with their ground-truth poses, the end ones drifted, then the last
+    one's loop closed. Returns (event, corrected poses, poses before, ground truth)."""
+    views, intr = loop_views
+    closer = LoopCloser(LoopConfig(temporal_window=2, neighbours=1), vocabulary, seed=0)
+    gt = np.stack([views[f][1] for f in LOOP_FRAMES])
+    drifted = np.array([DRIFT @ T if f >= 270 else T for f, T in zip(LOOP_FRAMES, gt)])
+    for i, f in enumerate(LOOP_FRAMES[:-1]):
+        closer.add_keyframe(i, frame_of(views, intr, f))
+        event, _ = closer.close(i, drifted[:i + 1], frame_of(views, intr, f))
+        assert event is None or event.loop_ids, "only the end of the loop may close it"
+    last = len(LOOP_FRAMES) - 1
+    closer.add_keyframe(last, frame_of(views, intr, LOOP_FRAMES[last]))
+    event, corrected = closer.close(last, drifted, frame_of(views, intr, LOOP_FRAMES[last]))
+    return event, corrected, drifted, gt
+
+
+def test_the_drifted_end_is_put_back_on_the_ground_truth(closed):
+    event, corrected, _, gt = closed
+    assert event is not None and event.applied, event
+    assert all(LOOP_FRAMES[i] <= 40 for i in event.loop_ids)
+    err_m, err_deg = pose_error(corrected[-1], gt[-1])
+    # the drift was 25 cm and 4 degrees; the fit through the start's depth removes it to about 1 cm
+    assert err_m < 0.015 and err_deg < 0.3, (err_m, err_deg)
+    drift_cm = 100 * pose_error(DRIFT @ gt[-1], gt[-1])[0]
+    assert abs(event.correction_cm - drift_cm) < 1.5
+    assert event.rms_px < event.rms_px_start
+
+
+def test_keyframes_up_to_the_loop_start_keep_their_poses(closed):
+    event, corrected, drifted, _ = closed
+    start = event.start_id
+    np.testing.assert_array_equal(corrected[:start + 1], drifted[:start + 1])
+    # the end's neighbours (frames 270, 280) carried the same drift: they come back most of the way
+    for i in (7, 8):
+        before, _ = pose_error(drifted[i], closed[3][i])
+        after, _ = pose_error(corrected[i], closed[3][i])
+        assert after < 0.5 * before, (i, before, after)
+
+
+def test_a_small_correction_is_detected_but_not_applied(vocabulary, loop_views):
+    views, intr = loop_views
+    closer = LoopCloser(LoopConfig(temporal_window=2, neighbours=1), vocabulary, seed=0)
+    gt = np.stack([views[f][1] for f in LOOP_FRAMES])  # no drift at all
+    for i, f in enumerate(LOOP_FRAMES):
+        closer.add_keyframe(i, frame_of(views, intr, f))
+    event, corrected = closer.close(len(LOOP_FRAMES) - 1, gt, frame_of(views, intr, LOOP_FRAMES[-1]))
+    assert event is not None and not event.applied and corrected is None
+    assert "nothing to correct" in event.reason
+    assert event.correction_cm < 1.0

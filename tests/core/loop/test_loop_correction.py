@@ -1,0 +1,135 @@
+"""Loop correction: the paper's reprojection objective and the spreading of the correction."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from neb_slam_core.geometry.se3 import invert, make_pose
+from neb_slam_core.loop.correction import (correction_size, fit_loop_pose, interpolate_correction, merge_correction,
+                                           propagate_correction, reprojection_residuals, sample_pixels,
+                                           strided_view)
+from neb_slam_core.types import Intrinsics
+
+K = Intrinsics(120.0, 120.0, 79.5, 59.5, 160, 120)
+BOX_LO, BOX_HI = np.array([-2.0, -1.5, -1.2]), np.array([2.5, 1.3, 3.0])
+
+
+def box_depth(T_world_cam: np.ndarray, k: Intrinsics = K) -> np.ndarray:
+    """Depth (z in the camera) of the inside of an axis-aligned box, by ray casting its six walls."""
+    v, u = np.mgrid[0:k.height, 0:k.width].astype(np.float64)
+    dirs_cam = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
+    d = dirs_cam @ T_world_cam[:3, :3].T
+    o = T_world_cam[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_hi = (BOX_HI - o) / d
+        t_lo = (BOX_LO - o) / d
+    t = np.where(d > 0, t_hi, t_lo)  # the wall each axis reaches first, moving along the ray
+    t = np.where(np.isfinite(t) & (t > 0), t, np.inf).min(axis=1)  # z of dirs_cam is 1: t is the depth
+    return t.reshape(k.height, k.width).astype(np.float32)
+
+
+def pose(rotvec_deg, t) -> np.ndarray:
+    return make_pose(Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix(), np.asarray(t, dtype=np.float64))
+
+
+# two loop keyframes looking into a corner of the box (three walls: every degree of freedom constrained)
+T_R1 = pose([5.0, -30.0, 0.0], [0.3, 0.2, 0.0])
+T_R2 = pose([-4.0, -20.0, 3.0], [-0.2, 0.1, 0.4])
+T_TRUE = pose([3.0, -25.0, 2.0], [0.1, 0.0, 0.3])
+
+
+def views(stride: int = 1):
+    return [strided_view(T, box_depth(T), K, stride) for T in (T_R1, T_R2)]
+
+
+def current_pixels(n: int = 800):
+    return sample_pixels(box_depth(T_TRUE), n, np.random.default_rng(0))
+
+
+def test_residuals_vanish_at_the_true_pose_and_not_elsewhere():
+    px, d = current_pixels()
+    r, ok = reprojection_residuals(T_TRUE, px, d, K, views())
+    assert ok.mean() > 0.8  # the keyframes see most of what the current one sees
+    # exact geometry: what remains is the bilinear interpolation of depth (1/z is linear on a plane, z
+    # is not), largest next to the box's edges, where it mixes two walls
+    assert np.median(np.abs(r[ok])) < 1e-3 and np.percentile(np.abs(r[ok]), 99) < 0.05
+    moved = pose([0.0, 0.0, 0.0], [0.03, 0.0, 0.0]) @ T_TRUE
+    r2, ok2 = reprojection_residuals(moved, px, d, K, views())
+    # 3 cm sideways: the walls facing x see it fully in the depth term, 120 px * 0.03 m / 2-4 m
+    assert np.sqrt((r2[ok2] ** 2).sum(axis=1).mean()) > 0.5
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_fit_recovers_the_pose_from_a_perturbed_start(stride):
+    px, d = current_pixels()
+    start = pose([1.0, -1.5, 0.5], [0.04, -0.03, 0.05]) @ T_TRUE  # ~7 cm and ~2 degrees off
+    fit = fit_loop_pose(start, px, d, K, views(stride))
+    cm, deg = correction_size(T_TRUE, fit.T_world_cam)
+    assert cm < 0.05 and deg < 0.02, (cm, deg)
+    assert fit.rms_px < 0.05 < fit.rms_px_start and fit.n_valid > 0.8 * 2 * len(px)
+
+
+def test_strided_view_scales_the_camera():
+    v = strided_view(np.eye(4), box_depth(T_R1), K, 2)
+    assert v.depth_m.shape == (60, 80) and v.intrinsics.width == 80 and v.intrinsics.height == 60
+    # full-resolution pixel (2i, 2j) is strided pixel (i, j): same depth, same ray
+    assert v.depth_m[10, 20] == box_depth(T_R1)[20, 40]
+    assert v.intrinsics.fx == 60.0 and v.intrinsics.cx == 79.5 / 2
+
+
+def test_interpolated_correction_ends():
+    delta = pose([10.0, 20.0, -5.0], [0.3, -0.2, 0.1])
+    pivot = np.array([1.0, 2.0, 3.0])
+    assert np.allclose(interpolate_correction(delta, pivot, 1.0), delta)
+    assert np.allclose(interpolate_correction(delta, pivot, 0.0), np.eye(4))
+    half = interpolate_correction(delta, pivot, 0.5)
+    # half the rotation angle, half the pivot's displacement
+    assert np.isclose(Rotation.from_matrix(half[:3, :3]).magnitude(), 0.5 * Rotation.from_matrix(delta[:3, :3]).magnitude())
+    assert np.allclose(half[:3, :3] @ pivot + half[:3, 3] - pivot, 0.5 * (delta[:3, :3] @ pivot + delta[:3, 3] - pivot))
+
+
+def test_propagation_along_a_straight_chain():
+    # keyframes every 1 m along x (then one more after the loop's end); the end is moved 40 cm along y
+    poses = np.stack([pose([0, 0, 0], [float(i), 0.0, 0.0]) for i in range(7)])
+    end_new = pose([0, 0, 0], [5.0, 0.4, 0.0])
+    out = propagate_correction(poses, 1, 5, end_new)
+    assert np.allclose(out[:2], poses[:2])                     # up to the loop's older end: held
+    for k in range(2, 6):                                      # share = path travelled / 4 m
+        assert np.allclose(out[k][:3, 3], [k, 0.4 * (k - 1) / 4, 0.0])
+        assert np.allclose(out[k][:3, :3], np.eye(3))
+    assert np.allclose(out[5], end_new)
+    assert np.allclose(out[6][:3, 3], [6.0, 0.4, 0.0])         # after the end: moved rigidly with it
+
+
+def test_propagation_keeps_relative_poses_near_the_end():
+    rng = np.random.default_rng(1)
+    poses = [np.eye(4)]
+    for _ in range(20):  # a wandering chain of 20 cm steps
+        poses.append(poses[-1] @ pose(rng.normal(0, 3, 3), rng.normal(0, 0.12, 3)))
+    poses = np.stack(poses)
+    end_new = pose([0.0, 4.0, 0.0], [0.05, 0.0, 0.1]) @ poses[20]
+    out = propagate_correction(poses, 0, 20, end_new)
+    # consecutive keyframes: their relative rotation changes by their difference in share of the 4
+    # degrees (conjugating a rotation keeps its angle); their relative translation by a few cm at most
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))])
+    shares = travelled / travelled[-1]
+    for k in range(1, 21):
+        cm, deg = correction_size(invert(poses[k - 1]) @ poses[k], invert(out[k - 1]) @ out[k])
+        assert np.isclose(deg, 4.0 * (shares[k] - shares[k - 1]), atol=1e-6) and cm < 3.0, (k, cm, deg)
+    with pytest.raises(ValueError, match="start_id"):
+        propagate_correction(poses, 5, 5, end_new)
+
+
+
+def test_merge_correction_moves_later_keyframes_rigidly():
+    poses = np.stack([pose([0, 0, 0], [float(i), 0.0, 0.0]) for i in range(6)])
+    corrected = np.stack([pose([0, 0, 0], [2.0, 0.1, 0.0]), pose([0, 0, 10.0], [3.0, 0.2, 0.0])])
+    out = merge_correction(poses, 2, corrected)
+    assert np.allclose(out[:2], poses[:2]) and np.allclose(out[2:4], corrected)
+    # keyframes 4 and 5 keep their pose relative to keyframe 3
+    for k in (4, 5):
+        assert np.allclose(invert(out[3]) @ out[k], invert(poses[3]) @ poses[k])
+    with pytest.raises(ValueError, match="not after the first"):
+        merge_correction(poses, 0, corrected)
+    with pytest.raises(ValueError):
+        merge_correction(poses, 5, corrected)

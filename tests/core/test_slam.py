@@ -120,3 +120,33 @@ def test_non_keyframe_poses_follow_corrections_of_their_keyframe(frames, full_ru
         np.testing.assert_allclose(slam.keyframes[k].T_world_cam, corrected[k], atol=0)
     finally:
         slam.set_keyframe_poses(poses)
+
+
+def test_a_loop_correction_keeps_the_loop_start_and_moves_the_rest_without_new_blocks(full_run):
+    import copy
+
+    original = full_run[0]
+    closer, original.loop_closer = original.loop_closer, None  # OpenCV's ORB detector does not deep-copy
+    try:
+        slam = copy.deepcopy(original)
+    finally:
+        original.loop_closer = closer
+    kfs = slam.keyframes
+    before = kfs.poses()
+    n_blocks = len(slam.block_map)
+    start = len(kfs) // 2
+    moved = before.copy()
+    moved[start + 1:, :3, 3] += [0.06, 0.0, -0.03]   # what propagate_correction would hand over
+    step = slam.backend.correct_loop(moved, start)
+    after = kfs.poses()
+    np.testing.assert_array_equal(after[:start + 1], before[:start + 1])  # held through both stages
+    # the joint stage refines the moved poses, it does not undo the correction (6.7 cm)
+    assert np.abs(after[start + 1:, :3, 3] - moved[start + 1:, :3, 3]).max() < 0.02
+    assert step.mapped and step.changed_block_ids and len(slam.block_map) == n_blocks
+    # block membership is that of the new poses, and consistent both ways
+    for kf in kfs.keyframes:
+        for b in slam.block_map.blocks:
+            assert (b.block_id in kf.block_ids) == (kf.keyframe_id in b.keyframe_ids)
+    slam.frontend.set_keyframe_poses(after)
+    assert np.allclose(slam.pose_of(slam.n_frames - 1)[:3, 3],
+                       (after[-1] @ invert(before[-1]) @ full_run[0].pose_of(slam.n_frames - 1))[:3, 3])

@@ -10,7 +10,9 @@ REP 118: NaN and Inf pixels are invalid readings, a frame without any valid dept
 
 from __future__ import annotations
 
+import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -75,16 +77,20 @@ class InputWarnings:
 
 
 class CameraInput:
-    """Subscribes the camera topics on ``node`` and calls ``on_frame(frame)`` for every usable frame
-    (in the executor's thread; keep it short). Ground-truth poses, when ``ground_truth_topic`` is set, are
-    kept by stamp for :meth:`ground_truth_near`."""
+    """Subscribes the camera topics on ``node`` and queues every usable frame for the node's worker thread:
+    at most ``frame_queue`` of them, the oldest dropped with a counted warning when the worker falls
+    behind. The queue is guarded by ``cond`` (the node's condition variable, notified on each frame); the
+    worker takes frames with :meth:`pop` while holding it. Ground-truth poses, when
+    ``ground_truth_topic`` is set, are kept by stamp for :meth:`ground_truth_near`."""
 
     HELD_FOR_CAMERA_INFO = 3
 
-    def __init__(self, node: Node, opt: InputOptions, on_frame: Callable[[RgbdFrame], None]):
+    def __init__(self, node: Node, opt: InputOptions, cond: threading.Condition):
         self.node = node
         self.opt = opt
-        self.on_frame = on_frame
+        self._cond = cond
+        self._queue: deque[RgbdFrame] = deque()
+        self.n_dropped = 0
         self.warnings = InputWarnings(node.get_logger(), opt.warn_period_s)
         self.topics = tuple(node.resolve_topic_name(t) for t in ("rgb/image", "depth/image", "rgb/camera_info"))
         self.slop_ns = int(round(opt.sync_slop_s * 1e9))
@@ -100,6 +106,29 @@ class CameraInput:
         node.create_subscription(CameraInfo, "rgb/camera_info", self._on_camera_info, cam)
         if opt.ground_truth_topic:
             node.create_subscription(PoseStamped, opt.ground_truth_topic, self._on_ground_truth, qos.events())
+
+    # ------------------------------------------------------------------ the queue
+
+    def _enqueue(self, frame: RgbdFrame) -> None:
+        with self._cond:
+            self._queue.append(frame)
+            if len(self._queue) > self.opt.frame_queue:
+                self._queue.popleft()
+                self.n_dropped += 1
+                self.warnings.warn("queue", f"{self.node.get_name()} is behind the input: oldest queued frame "
+                                            f"dropped ({self.n_dropped} dropped)")
+            self._cond.notify_all()
+
+    @property
+    def has_frame(self) -> bool:
+        """A frame is queued (read with the condition held)."""
+        return bool(self._queue)
+
+    def pop(self) -> RgbdFrame | None:
+        """The oldest queued frame, or None (call with the condition held)."""
+        return self._queue.popleft() if self._queue else None
+
+    # ------------------------------------------------------------------ callbacks (executor thread)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
@@ -140,7 +169,7 @@ class CameraInput:
                 self.node.get_logger().info(f"{self.topics[1]}: {n_nan} depth pixels NaN or Inf in frame "
                                             f"{frame.stamp_ns}: read as invalid (REP 118), here and from now on")
             self.n_accepted += 1
-            self.on_frame(frame)
+            self._enqueue(frame)
 
     def _on_ground_truth(self, msg: PoseStamped) -> None:
         try:

@@ -20,7 +20,6 @@ import dataclasses
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,13 +76,11 @@ class SlamNode(Node):
         self.slam: Slam | None = None  # made at the first frame (its pose may come from a topic)
         self.run_log = RunLog()
         self._cond = threading.Condition()
-        self._frames: deque = deque()
         self._requests = Requests(self._cond)
         self._stop = False
-        self._n_dropped = 0
         self._t_first: float | None = None
         self._prev: tuple[np.ndarray, int] | None = None
-        self.input = CameraInput(self, self.input_opt, self._on_frame)
+        self.input = CameraInput(self, self.input_opt, self._cond)
         self.pub_pose = self.create_publisher(PoseStamped, "pose", qos.stream())
         self.pub_odom = self.create_publisher(Odometry, "odometry", qos.stream())
         self.pub_path = self.create_publisher(PathMsg, "path", qos.state())
@@ -98,27 +95,15 @@ class SlamNode(Node):
         self.get_logger().info(f"neb_slam slam started (config {self.get_parameter('config').value}, "
                                f"output {self.out})")
 
-    # ------------------------------------------------------------------ callbacks (executor threads)
-
-    def _on_frame(self, frame) -> None:
-        with self._cond:
-            self._frames.append(frame)
-            if len(self._frames) > self.input_opt.frame_queue:
-                self._frames.popleft()
-                self._n_dropped += 1
-                self.input.warnings.warn("queue", f"the engine is behind the input: oldest queued frame dropped "
-                                                  f"({self._n_dropped} dropped)")
-            self._cond.notify_all()
-
     # ------------------------------------------------------------------ worker thread
 
     def _work(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._stop or self._requests or self._frames, timeout=1.0)
+                self._cond.wait_for(lambda: self._stop or self._requests or self.input.has_frame, timeout=1.0)
                 if self._stop:
                     return
-                frame = self._frames.popleft() if self._frames else None
+                frame = self.input.pop()
                 requests = self._requests.take()
             if frame is not None:
                 try:
@@ -211,7 +196,7 @@ class SlamNode(Node):
         m = summary.metrics
         ate = f", ATE {m['ate_rmse_cm']:.3f} cm" if "ate_rmse_cm" in m else ""
         final_log(self, f"neb_slam slam stopped: {self.slam.n_frames} frames, {m.get('n_blocks')} blocks, "
-                        f"{m.get('s_per_frame') or 0:.3f} s per frame{ate}, {self._n_dropped} dropped, "
+                        f"{m.get('s_per_frame') or 0:.3f} s per frame{ate}, {self.input.n_dropped} dropped, "
                         f"{self.input.warnings.total} input warnings; run directory {self.out}")
 
 

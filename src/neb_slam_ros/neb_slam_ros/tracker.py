@@ -79,10 +79,8 @@ class TrackerNode(Node):
         self.block_map = new_block_map(self.cfg)
         self.frontend: Frontend | None = None  # made at the first frame (its pose may come from a topic)
         self._cond = threading.Condition()
-        self._frames: deque = deque()
         self._updates: deque = deque()
         self._stop = False
-        self._n_dropped = 0
         self._awaited_ack: int | None = None  # stamp of the keyframe whose map update we wait for
         self._acked = -1
         self._awaited_loop: int | None = None  # stamp of the keyframe whose loop verdict we wait for
@@ -90,7 +88,7 @@ class TrackerNode(Node):
         self._map_version = 0
         self._prev: tuple[np.ndarray, int] | None = None
 
-        self.input = CameraInput(self, self.input_opt, self._on_frame)
+        self.input = CameraInput(self, self.input_opt, self._cond)
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
         if self.opt.loop_sync:
             self.create_subscription(Path, "loop_closure", self._on_loop_verdict, qos.events(10))
@@ -111,16 +109,6 @@ class TrackerNode(Node):
                                f"map_sync {self.opt.map_sync}, inputs {', '.join(self.input.topics)})")
 
     # ------------------------------------------------------------------ callbacks (executor thread)
-
-    def _on_frame(self, frame) -> None:
-        with self._cond:
-            self._frames.append(frame)
-            if len(self._frames) > self.input_opt.frame_queue:
-                self._frames.popleft()
-                self._n_dropped += 1
-                self.input.warnings.warn("queue", f"tracking is behind the input: oldest queued frame dropped "
-                                                  f"({self._n_dropped} dropped)")
-            self._cond.notify_all()
 
     def _on_map_update(self, msg: UInt8MultiArray) -> None:
         try:
@@ -148,13 +136,13 @@ class TrackerNode(Node):
         waited_since = None
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._stop or self._updates or (self._frames and not self._waiting_for_map()),
+                self._cond.wait_for(lambda: self._stop or self._updates or (self.input.has_frame and not self._waiting_for_map()),
                                     timeout=1.0)
                 if self._stop:
                     return
                 updates = list(self._updates)
                 self._updates.clear()
-                frame = self._frames.popleft() if self._frames and not self._waiting_for_map() else None
+                frame = None if self._waiting_for_map() else self.input.pop()
             for u in updates:
                 self._apply(u)
             if self._waiting_for_map():
@@ -250,7 +238,7 @@ class TrackerNode(Node):
         self._worker.join(timeout=60)
         n = 0 if self.frontend is None else self.frontend.n_frames
         final_log(self, f"neb_slam tracker stopped: {n} frames tracked, {len(self.block_map)} blocks, "
-                               f"{self._n_dropped} dropped, {self.input.warnings.total} input warnings")
+                               f"{self.input.n_dropped} dropped, {self.input.warnings.total} input warnings")
 
 
 def main(args: Sequence[str] | None = None) -> int:

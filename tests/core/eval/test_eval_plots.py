@@ -40,3 +40,17 @@ def test_plots_are_written(tmp_path):
     fig = plot_trajectory(ate)
     ax = fig.axes[0]
     assert (ax.get_xlabel(), ax.get_ylabel()) == ("x [m]", "z [m]")
+
+
+def test_loops_are_drawn_between_the_two_estimated_positions():
+    ate = small_ate()
+    s = ate.stamps_ns
+    fig = plot_trajectory(ate, loops=[(s[40], s[2], True), (s[45], s[3], False), (s[45], 123, True)])
+    lines = {line.get_label(): line for line in fig.axes[0].get_lines()}
+    applied, skipped = lines["loop closure"], lines["loop (not applied)"]
+    est = ate.aligned_poses[:, :3, 3]
+    np.testing.assert_allclose(applied.get_xdata(), [est[40, 0], est[2, 0]])
+    np.testing.assert_allclose(applied.get_ydata(), [est[40, 2], est[2, 2]])
+    assert applied.get_linestyle() == "-" and skipped.get_linestyle() == ":"
+    # the third loop names a stamp the trajectory does not have: not drawn
+    assert sum(line.get_color() == "tab:red" for line in fig.axes[0].get_lines()) == 2

@@ -1,9 +1,9 @@
 """`make demo`: the embedded default.
 
 Generates the default synthetic scene (once) into bags/ and converts it to a ROS 2 bag (once), then
-replays the bag through the node suite as separate processes over DDS (mapper, tracker, bag_replay in
-lockstep; see neb_slam_ros/suite.py), and prints ATE, blocks, parameter MB, fps and where the results
-are. The last line printed is the run directory (trajectory.txt, groundtruth.txt, mesh.ply, map.pt,
+replays the bag through the node suite as separate processes over DDS (mapper, loop_closer, tracker,
+bag_replay in lockstep; see neb_slam_ros/suite.py), and prints ATE, blocks, parameter MB, fps and
+where the results are. The last line printed is the run directory (trajectory.txt, groundtruth.txt, mesh.ply, map.pt,
 metrics.json, plots, logs/).
 
     make demo                                  # the default synthetic scene, config synthetic
@@ -55,7 +55,7 @@ def main() -> int:
     from neb_slam_ros.suite import launch
 
     out = args.out or REPO / time.strftime(f"runs/demo-{bag.name}-%Y%m%d-%H%M%S")
-    print(f"replaying {bag.name} through mapper + tracker + bag_replay (lockstep, config {args.config}); "
+    print(f"replaying {bag.name} through mapper + loop_closer + tracker + bag_replay (lockstep, config {args.config}); "
           f"process logs in {out / 'logs'}", flush=True)
     result = launch(bag, out, args.config, args.count)
     m = result.metrics

@@ -63,6 +63,7 @@ def main() -> None:
     name = "default-noise" if args.noise else "default"
     source = generate("default", REPO / ".cache" / "scenes" / name, noise=args.noise, progress=True)
     out = args.out or REPO / "runs" / f"loop-ablation-{time.strftime('%Y%m%d-%H%M%S')}"
+    load_before = os.getloadavg()[0]
     without = run(source, out / "without", False, args.config, args.frames, extra)
     with_ = run(source, out / "with", True, args.config, args.frames, extra)
     loops = json.loads((out / "with" / "loops.json").read_text())
@@ -88,7 +89,7 @@ def main() -> None:
                                      "correction_deg")} for e in loops],
         "n_blocks_with": with_.get("n_blocks"),
         "n_blocks_without": without.get("n_blocks"),
-        "load_average_before": round(os.getloadavg()[0], 2),
+        "load_average_before": round(load_before, 2),
         "run_dirs": [str(out / "without"), str(out / "with")],
     })
     if not args.skip_place_recognition:

@@ -31,6 +31,18 @@ class InputError(Exception):
         super().__init__(f"{topic}: {problem}")
 
 
+def map_update_from_msg(msg, node):
+    """The :class:`~neb_slam_core.scene.map_update.MapUpdate` in a ``map_update`` message, or None (with
+    an error logged by ``node`` naming the topic) when it cannot be decoded."""
+    from neb_slam_core.scene import map_update
+
+    try:
+        return map_update.decode(msg.data)
+    except map_update.MapUpdateError as exc:
+        node.get_logger().error(f"{node.resolve_topic_name('map_update')}: {exc}: update ignored")
+        return None
+
+
 # ---------------------------------------------------------------------------------------------- time
 
 

@@ -30,7 +30,6 @@ from rclpy.node import Node
 from std_msgs.msg import UInt8MultiArray
 
 from neb_slam_core.loop.closer import LoopCloser
-from neb_slam_core.scene import map_update
 from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import final_log, run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
@@ -79,10 +78,8 @@ class LoopCloserNode(Node):
     # ------------------------------------------------------------------ callbacks (executor thread)
 
     def _on_map_update(self, msg: UInt8MultiArray) -> None:
-        try:
-            update = map_update.decode(msg.data)
-        except map_update.MapUpdateError as exc:
-            self.get_logger().error(f"{self.resolve_topic_name('map_update')}: {exc}: update ignored")
+        update = conversions.map_update_from_msg(msg, self)
+        if update is None:
             return
         with self._cond:
             if update.version > self._map_version and len(update.keyframe_poses):

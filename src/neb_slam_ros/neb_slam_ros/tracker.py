@@ -111,10 +111,8 @@ class TrackerNode(Node):
     # ------------------------------------------------------------------ callbacks (executor thread)
 
     def _on_map_update(self, msg: UInt8MultiArray) -> None:
-        try:
-            update = map_update.decode(msg.data)
-        except map_update.MapUpdateError as exc:
-            self.get_logger().error(f"{self.resolve_topic_name('map_update')}: {exc}: update ignored")
+        update = conversions.map_update_from_msg(msg, self)
+        if update is None:
             return
         with self._cond:
             self._updates.append(update)

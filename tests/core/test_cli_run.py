@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from neb_slam_core.cli import run as run_cmd
@@ -164,6 +165,29 @@ def test_config_mesh_and_intrinsics(shared_run, small_scene):
     mesh = trimesh.load(out / "mesh.ply", force="mesh", process=False)
     assert len(mesh.faces) > 0 and np.isfinite(mesh.vertices).all()
     assert json.loads((out / "intrinsics.json").read_text()) == json.loads((small_scene / "intrinsics.json").read_text())
+
+
+def test_map_continues_a_run_s_checkpoint(shared_run, small_scene, tmp_path, capsys):
+    """--map: the shared run's map.pt is the starting map (its blocks are all in the new checkpoint,
+    unchanged in place); a map file that is missing, or made with another block size, exits 2 naming it."""
+    _, _, shared_out, _ = shared_run
+    before, _ = load_map(shared_out / "map.pt")
+    out = tmp_path / "continued"
+    code, stdout = run_cli(["run", str(small_scene), "--config", "ci", "--seed", "3", "--start", "18", "--frames", "2",
+                            "--map", str(shared_out / "map.pt"), "--out", str(out), "--no-mesh", *TINY])
+    assert code == 0 and stdout.strip().splitlines()[-1] == str(out)
+    assert f"continuing {shared_out / 'map.pt'} ({len(before)} blocks)" in capsys.readouterr().err
+    after, _ = load_map(out / "map.pt")
+    assert len(after) >= len(before)
+    for a, b in zip(before.blocks, after.blocks):
+        assert torch.equal(a.centre, b.centre)
+    missing = tmp_path / "no_map.pt"
+    assert main(["run", str(small_scene), "--config", "ci", "--map", str(missing), "--out", str(tmp_path / "x")]) == 2
+    assert str(missing) in capsys.readouterr().err
+    assert main(["run", str(small_scene), "--config", "ci", "--set", "block.edge_m=2.0", "--map",
+                 str(shared_out / "map.pt"), "--out", str(tmp_path / "y")]) == 2
+    assert "block.edge_m" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
 # -------------------------------------------------------------------------------- interruptions

@@ -150,3 +150,40 @@ def test_a_loop_correction_keeps_the_loop_start_and_moves_the_rest_without_new_b
     slam.frontend.set_keyframe_poses(after)
     assert np.allclose(slam.pose_of(slam.n_frames - 1)[:3, 3],
                        (after[-1] @ invert(before[-1]) @ full_run[0].pose_of(slam.n_frames - 1))[:3, 3])
+
+
+def test_a_run_continues_a_saved_map_and_tracks_its_first_frame_against_it(frames, full_run, tmp_path):
+    """``Slam(cfg, T, load_map_for(cfg, map.pt))``: the first frame is tracked against the loaded map
+    (a first pose 4 cm / 1.5 degrees off comes back to the ground truth), no block is added where the
+    map already reaches, and the following frames track as well as in the run that made the map."""
+    from neb_slam_core.scene.persistence import save_map
+    from neb_slam_core.slam import load_map_for
+
+    made = full_run[0]
+    path = save_map(made.block_map, tmp_path / "map.pt")
+    cfg = load_config("ci")
+    block_map = load_map_for(cfg, path)
+    assert len(block_map) == len(made.block_map) and all(not b.keyframe_ids for b in block_map.blocks)
+    part = frames[30:40]
+    off = np.eye(4)
+    off[:3, :3] = Rotation.from_euler("xyz", [1.0, -1.0, 0.5], degrees=True).as_matrix()
+    off[:3, 3] = [0.03, -0.02, 0.015]
+    start = part[0].T_world_cam @ off
+    slam = Slam(cfg, start, block_map)
+    results = [slam.process(f) for f in part]
+    first = results[0]
+    assert first.tracking_ok and first.is_keyframe and first.mapped
+    assert np.linalg.norm(first.T_world_cam[:3, 3] - part[0].T_world_cam[:3, 3]) < 0.01
+    assert np.linalg.norm(start[:3, 3] - part[0].T_world_cam[:3, 3]) > 0.035
+    assert all(r.new_block_id is None for r in results) and len(slam.block_map) == len(made.block_map)
+    assert evaluate_ate(slam.trajectory(), ground_truth(part), align=False).rmse_cm < 2.0
+
+
+def test_a_map_made_with_another_configuration_is_refused_naming_the_field(full_run, tmp_path):
+    from neb_slam_core.errors import DatasetError
+    from neb_slam_core.scene.persistence import save_map
+    from neb_slam_core.slam import load_map_for
+
+    path = save_map(full_run[0].block_map, tmp_path / "map.pt")
+    with pytest.raises(DatasetError, match=r"map.pt: the map was made with block.edge_m = .*this configuration has 9.0"):
+        load_map_for(load_config("ci", ["block.edge_m=9.0"]), path)

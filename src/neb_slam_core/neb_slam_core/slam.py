@@ -49,6 +49,32 @@ def new_block_map(cfg: SlamConfig) -> BlockMap:
                     seed=cfg.seed).to(torch.device(cfg.device))
 
 
+def load_map_for(cfg: SlamConfig, path) -> BlockMap:
+    """The map checkpoint at ``path`` (``save_map``'s ``map.pt``), for an engine with ``cfg`` to continue.
+
+    Its block, encoding and decoder configs must be ``cfg``'s (a map is only meaningful to the decoders
+    that read it); a difference raises :class:`DatasetError` naming the file and the first differing
+    field. The blocks lose their keyframe links: those keyframes belong to the run that saved the map.
+    """
+    from .config import config_to_dict
+    from .errors import DatasetError
+    from .scene.persistence import load_map
+
+    block_map, _ = load_map(path, torch.device(cfg.device), cfg.grid_backend)
+    for section, stored in (("block", block_map.block_cfg), ("one_blob", block_map.blob_cfg),
+                            ("decoder", block_map.decoder_cfg)):
+        mine, theirs = config_to_dict(getattr(cfg, section)), config_to_dict(stored)
+        for key in sorted(set(mine) | set(theirs)):
+            if mine.get(key) != theirs.get(key):
+                raise DatasetError(path, f"the map was made with {section}.{key} = {theirs.get(key)!r}, this "
+                                         f"configuration has {mine.get(key)!r}: run with the map's configuration")
+    if len(block_map) == 0:
+        raise DatasetError(path, "the map has no blocks")
+    for block in block_map.blocks:
+        block.keyframe_ids = []
+    return block_map
+
+
 @dataclass
 class _FramePose:
     """A processed frame's pose: relative to keyframe ``keyframe_id`` (``T_kf_cam``)."""
@@ -127,21 +153,27 @@ class Frontend:
 
     def step(self, frame: RgbdFrame) -> FrontendStep:
         """Track ``frame`` (undistorted first when it carries lens distortion), allocate, and decide
-        whether it becomes a keyframe and whether the map is optimised after it."""
+        whether it becomes a keyframe and whether the map is optimised after it.
+
+        The first frame initialises an empty map at ``T_world_first``. On a map that already has blocks
+        (a checkpoint continued) it is tracked like any other, from ``T_world_first`` as the prediction.
+        """
         t_start = time.perf_counter()
         frame = self._rectify(frame)
         index = self.n_frames
         timings = StepTimings()
-        if index == 0:
+        if index == 0 and len(self.block_map) == 0:
             return self._first(frame, t_start)
 
         # constant velocity from the last two frames, only when both were tracked: after a failure the
         # velocity is unknown, and extrapolating an extrapolation runs away
-        T_prev = self.pose_of(index - 1)
-        if index >= 2 and self._ok_streak >= 2:
+        if index == 0:
+            T_pred = self.T_world_first
+        elif index >= 2 and self._ok_streak >= 2:
+            T_prev = self.pose_of(index - 1)
             T_pred = orthonormalize(T_prev @ invert(self.pose_of(index - 2)) @ T_prev)
         else:
-            T_pred = T_prev
+            T_pred = self.pose_of(index - 1)
         t0 = time.perf_counter()
         tracked = self.tracker.track(self.block_map, frame, T_pred)
         timings.track_ms = 1e3 * (time.perf_counter() - t0)
@@ -159,9 +191,10 @@ class Frontend:
         # a mapping frame is a keyframe too, so that a backend in another process learns of every
         # mapping step from the keyframe that triggers it (with keyframes.every == mapping.every, the
         # paper's setting, this adds no keyframe)
+        # (the first frame on a continued map is always a keyframe: frame poses hang off keyframes)
         c = self.cfg
-        map_now = ok and (index % c.mapping.every == 0 or new_block is not None)
-        is_keyframe = ok and (index % c.keyframes.every == 0 or map_now)
+        map_now = (ok or index == 0) and (index % c.mapping.every == 0 or new_block is not None)
+        is_keyframe = (ok or index == 0) and (index % c.keyframes.every == 0 or map_now)
         keyframe_id = self._add_keyframe(T) if is_keyframe else None
         self._record(frame.stamp_ns, T)
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
@@ -300,10 +333,14 @@ class Backend:
 class Slam:
     """NeB-SLAM engine for one RGB-D stream: a frontend and a backend on one block map."""
 
-    def __init__(self, cfg: SlamConfig = SlamConfig(), T_world_first: np.ndarray | None = None):
+    def __init__(self, cfg: SlamConfig = SlamConfig(), T_world_first: np.ndarray | None = None,
+                 block_map: BlockMap | None = None):
+        """An engine starting from ``T_world_first`` (identity when omitted) on an empty map, or on
+        ``block_map`` (a previous run's, :func:`load_map_for`) when one is given: the first frame is
+        then tracked against it, and blocks are added where it does not reach."""
         self.cfg = cfg
         torch.manual_seed(cfg.seed)
-        self.block_map = new_block_map(cfg)
+        self.block_map = new_block_map(cfg) if block_map is None else block_map
         self.frontend = Frontend(cfg, self.block_map, T_world_first)
         self.backend = Backend(cfg, self.block_map)
         self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled else None

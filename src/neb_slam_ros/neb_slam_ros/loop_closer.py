@@ -3,7 +3,8 @@
 Subscribes the tracker's keyframes (``keyframe/*``) and keeps every one in the engine's
 :class:`~neb_slam_core.loop.closer.LoopCloser` (ORB words in an inverted-index database, depth maps for
 the correction). Keyframe poses are the tracker's, replaced by the mapper's refined ones as its
-``map_update`` messages bring them. For each new keyframe it runs the paper's loop query; when a loop is
+``map_update`` messages bring them (once an update says the mapper has handled the newest correction
+published here: older ones still hold the poses from before it). For each new keyframe it runs the paper's loop query; when a loop is
 found, verified and its correction fitted, it publishes ``loop_closure`` (nav_msgs/Path): the corrected
 poses of the keyframes from just after the loop's older end to the new keyframe, each pose stamped with
 its keyframe's stamp. Every checked keyframe gets a ``loop_closure`` message stamped (header) with that
@@ -63,6 +64,7 @@ class LoopCloserNode(Node):
         self._stamps: list[int] = []               # keyframe id -> stamp
         self._mapper_poses: np.ndarray | None = None  # the newest map update's keyframe poses
         self._map_version = 0
+        self._sent_loop_stamp = -1  # the newest correction published: older map updates do not carry it
         self.n_loops = 0
         self.n_detected = 0
 
@@ -82,7 +84,10 @@ class LoopCloserNode(Node):
         if update is None:
             return
         with self._cond:
-            if update.version > self._map_version and len(update.keyframe_poses):
+            # an update the mapper sent before it applied our newest correction holds the poses from
+            # before it: taking them would undo the correction (and find the same loop again)
+            if (update.version > self._map_version and len(update.keyframe_poses)
+                    and update.loop_stamp_ns >= self._sent_loop_stamp):
                 self._map_version = update.version
                 self._mapper_poses = np.array(update.keyframe_poses, dtype=np.float64)
 
@@ -141,6 +146,9 @@ class LoopCloserNode(Node):
         self.n_loops += 1
         first = event.start_id + 1
         self._poses[first:] = list(corrected[first:])
+        with self._cond:
+            self._sent_loop_stamp = int(meta.stamp_ns)
+            self._mapper_poses = None  # received before the correction: stale already
         self.get_logger().info(f"loop {frames}: score {event.score:.3f}, correction {event.correction_cm:.1f} cm / "
                                f"{event.correction_deg:.2f} deg, keyframes {first}..{kid} corrected")
         return conversions.path_msg(np.array(self._stamps[first:], dtype=np.int64), corrected[first:],

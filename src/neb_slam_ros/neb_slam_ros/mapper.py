@@ -120,7 +120,8 @@ class MapperNode(Node):
         self._version = 0
         self._unsent_blocks: set[int] = set()
         self._path: tuple[np.ndarray, np.ndarray] | None = None
-        self._loops: list[tuple[np.ndarray, np.ndarray]] = []  # corrections not applied yet
+        self._loops: list[tuple[int, np.ndarray, np.ndarray]] = []  # corrections not applied yet
+        self._loop_stamp = -1  # header stamp of the newest correction handled (map_update's loop_stamp_ns)
         self._n_loops = 0
         self._n_mapping_steps = 0
         self._map_ms = 0.0
@@ -158,7 +159,7 @@ class MapperNode(Node):
             self.get_logger().error(f"{self.resolve_topic_name('loop_closure')}: {exc}: correction ignored")
             return
         with self._cond:
-            self._loops.append((stamps, poses))
+            self._loops.append((conversions.stamp_ns(msg), stamps, poses))
             self._cond.notify_all()
 
     # ------------------------------------------------------------------ worker thread
@@ -203,13 +204,15 @@ class MapperNode(Node):
             self._publish_update(step.changed_block_ids | self._unsent_blocks, meta.stamp_ns)
             self._unsent_blocks.clear()
 
-    def _correct(self, stamps: np.ndarray, poses: np.ndarray) -> bool:
-        """Apply a loop correction (corrected poses of consecutive keyframes, named by stamp) and
-        re-optimise; False while some of its keyframes are not integrated yet (it is kept for later)."""
+    def _correct(self, loop_stamp_ns: int, stamps: np.ndarray, poses: np.ndarray) -> bool:
+        """Apply the loop correction stamped ``loop_stamp_ns`` (corrected poses of consecutive keyframes,
+        named by stamp) and re-optimise; False while some of its keyframes are not integrated yet (it is
+        kept for later)."""
         kfs = self.backend.keyframes
         id_of = {int(kf.stamp_ns): kf.keyframe_id for kf in kfs.keyframes}
         if any(int(s) not in id_of for s in stamps):
             return False
+        self._loop_stamp = max(self._loop_stamp, loop_stamp_ns)
         ids = [id_of[int(s)] for s in stamps]
         if ids != list(range(ids[0], ids[0] + len(ids))) or ids[0] == 0:
             self.get_logger().error(f"loop_closure: keyframes {ids} are not consecutive keyframes after the "
@@ -227,7 +230,7 @@ class MapperNode(Node):
         kfs = self.backend.keyframes
         self._version += 1
         data = map_update.encode(self.block_map, block_ids, self._version, ack_stamp_ns,
-                                 [kf.stamp_ns for kf in kfs.keyframes], kfs.poses())
+                                 [kf.stamp_ns for kf in kfs.keyframes], kfs.poses(), self._loop_stamp)
         self.pub_update.publish(UInt8MultiArray(data=data))
 
     # ------------------------------------------------------------------ outputs (worker thread)

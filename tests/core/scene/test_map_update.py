@@ -36,14 +36,29 @@ def trained(seed: int = 3) -> BlockMap:
 def test_layout_sizes_are_the_documented_ones():
     m = trained()
     poses = np.stack([np.eye(4)] * 2)
-    data = map_update.encode(m, [2, 0], version=5, ack_stamp_ns=123, keyframe_stamps_ns=[10, 20], keyframe_poses=poses)
+    data = map_update.encode(m, [2, 0], version=5, ack_stamp_ns=123, keyframe_stamps_ns=[10, 20], keyframe_poses=poses,
+                             loop_stamp_ns=77)
     table_numel = m.blocks[0].grid.table.numel()
     n_decoder = sum(p.numel() for p in m.decoders.parameters())
-    assert len(data) == 44 + 2 * (16 + 4 * table_numel) + 4 * n_decoder + 2 * 8 + 2 * 128
+    assert len(data) == 52 + 2 * (16 + 4 * table_numel) + 4 * n_decoder + 2 * 8 + 2 * 128
     assert data[:4] == b"NEBU"
     assert struct.unpack_from("<HHQq", data, 4) == (1, 0, 5, 123)
+    assert struct.unpack_from("<IIIIIq", data, 24) == (2, table_numel, n_decoder, 2, 52, 77)
     # the first block record is block 0 (ids are sorted), its centre follows its id
-    assert struct.unpack_from("<I3f", data, 44) == (0, 0.0, 0.0, 0.0)
+    assert struct.unpack_from("<I3f", data, 52) == (0, 0.0, 0.0, 0.0)
+    assert map_update.decode(data).loop_stamp_ns == 77
+
+
+def test_an_update_with_the_first_44_byte_header_reads_without_a_loop_stamp():
+    """Fields are appended after the first 44 header bytes; header_bytes tells a reader where the
+    blocks start, so an update without the appended field still decodes (loop stamp -1)."""
+    m = trained()
+    data = map_update.encode(m, [1], 3, 9, [5], np.eye(4)[None], loop_stamp_ns=123)
+    old = bytearray(data[:44] + data[52:])
+    struct.pack_into("<I", old, 40, 44)
+    u = map_update.decode(bytes(old))
+    assert (u.version, u.ack_stamp_ns, u.block_ids, u.loop_stamp_ns) == (3, 9, [1], -1)
+    np.testing.assert_array_equal(u.blocks[0].table, map_update.decode(data).blocks[0].table)
 
 
 def test_applying_updates_reproduces_the_senders_map_exactly():
@@ -88,6 +103,8 @@ def test_bad_updates_are_refused_with_what_is_wrong():
         map_update.decode(data[:10])
     with pytest.raises(MapUpdateError, match="format 9"):
         map_update.decode(data[:4] + struct.pack("<H", 9) + data[6:])
+    with pytest.raises(MapUpdateError, match="header_bytes 12"):
+        map_update.decode(data[:40] + struct.pack("<I", 12) + data[44:])
     # a receiver with no blocks cannot take block 1 before block 0 (a lost update)
     only_later = map_update.decode(map_update.encode(sender, [1], 1, 0, [], np.zeros((0, 4, 4))))
     with pytest.raises(MapUpdateError, match="an update was lost"):

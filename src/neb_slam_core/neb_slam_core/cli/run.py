@@ -17,6 +17,12 @@ First pose: the run starts from the first processed frame's ground-truth pose wh
 one, so the trajectory and the mesh are in the ground truth's world frame and the mesh compares with
 a ground-truth mesh without alignment; otherwise from the identity.
 
+Continuing a map: --map takes a previous run's map.pt (same block, encoding and decoder configuration).
+Its blocks and decoders are the starting map. The first frame is tracked against it, from the first
+pose above as the prediction (so that pose must be in the map's world frame: ground truth of the same
+scene, or the identity when the map's run started at this frame's place). New blocks are allocated
+where the map does not reach. The mesh is culled to what this run's keyframes saw.
+
 Metrics: ATE / RPE when the input has ground truth; accuracy, completion and Depth L1 when a
 ground-truth mesh is given with --gt-mesh or the input folder holds the mesh.ply of ``neb-slam synth``
 (both meshes culled to what the ground-truth cameras saw).
@@ -30,6 +36,7 @@ Examples:
     neb-slam run ../shared/data/tum_fr1_xyz_300 --frames 100
     neb-slam run data/synth_small --config ci --out runs/smoke --no-mesh
     neb-slam run bags/fr1_xyz --config tum --set tracking.iterations=20 mapping.every=4 --stride 2
+    neb-slam run bags/fr1_xyz --config tum --start 150 --map runs/fr1_first_half/map.pt
 """
 
 from __future__ import annotations
@@ -62,6 +69,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, metavar="S", help="random seed (default: the config's)")
     p.add_argument("--device", choices=("cpu", "cuda"), help="torch device (default: the config's)")
     p.add_argument("--format", metavar="FMT", help="dataset loader (default: detect from the layout)")
+    p.add_argument("--map", type=Path, metavar="MAP_PT", help="continue this map checkpoint (a run's map.pt) "
+                                                              "instead of starting from an empty map")
     g = p.add_argument_group("mesh and reconstruction")
     g.add_argument("--no-mesh", action="store_true", help="do not extract the mesh")
     g.add_argument("--mesh-voxel", type=float, metavar="M", help="marching-cubes voxel size in metres "
@@ -151,6 +160,9 @@ def run(args: argparse.Namespace) -> int:
     root = Path(dataset.root)
     if gt_mesh is None and root.is_dir() and (root / SYNTH_SCENE_FILE).is_file() and (root / SYNTH_MESH_FILE).is_file():
         gt_mesh = root / SYNTH_MESH_FILE
+    from ..slam import Slam, load_map_for
+
+    block_map = None if args.map is None else load_map_for(cfg, args.map)
     first = dataset[indices[0]]
     if first.T_world_cam is not None:
         T_world_first = first.T_world_cam
@@ -167,11 +179,10 @@ def run(args: argparse.Namespace) -> int:
                                first_pose_from_gt=first.T_world_cam is not None,
                                recon_points=args.recon_points, depth_views=args.depth_views)
     print(f"{dataset!r}: {len(indices)} frames, config {args.config or default_preset(dataset)}, "
-          f"writing to {run_dir.path}", file=sys.stderr)
+          + ("" if block_map is None else f"continuing {args.map} ({len(block_map)} blocks), ")
+          + f"writing to {run_dir.path}", file=sys.stderr)
 
-    from ..slam import Slam
-
-    slam = Slam(cfg, T_world_first)
+    slam = Slam(cfg, T_world_first, block_map)
     run_log = RunLog()
     t_start = time.perf_counter()
     try:

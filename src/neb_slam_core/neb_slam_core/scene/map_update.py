@@ -7,7 +7,7 @@ keyframes (mapping refines them). Applying every update in order reproduces the 
 
 Binary layout, version 1, little-endian, no padding::
 
-    header (44 bytes)
+    header (52 bytes)
       char[4]  magic            b"NEBU"
       uint16   format           1
       uint16   reserved         0
@@ -17,7 +17,9 @@ Binary layout, version 1, little-endian, no padding::
       uint32   table_numel      float32 values per block table (L * T * F of the block config)
       uint32   n_decoder        float32 values of all decoder parameters
       uint32   n_keyframes      K
-      uint32   header_bytes     44 (readers skip to here: later versions may append fields)
+      uint32   header_bytes     52 (readers skip to here: later versions may append fields)
+      int64    loop_stamp_ns    stamp of the newest ``loop_closure`` correction the map has handled (-1:
+                                none); appended after the first 44 bytes: a 44-byte header reads as -1
     B times
       uint32   block_id
       float32  centre_world[3]  metres
@@ -43,7 +45,8 @@ from .block_map import BlockMap
 
 MAGIC = b"NEBU"
 FORMAT_VERSION = 1
-_HEADER = struct.Struct("<4sHHQqIIIII")
+_HEADER = struct.Struct("<4sHHQqIIIII")  # the first 44 bytes; header_bytes says where the blocks start
+_HEADER_EXTRA = struct.Struct("<q")      # fields appended since: loop_stamp_ns
 _BLOCK_HEAD = struct.Struct("<I3f")
 
 
@@ -70,6 +73,7 @@ class MapUpdate:
     decoders: np.ndarray
     keyframe_stamps_ns: np.ndarray
     keyframe_poses: np.ndarray
+    loop_stamp_ns: int = -1
 
     @property
     def block_ids(self) -> list[int]:
@@ -77,9 +81,9 @@ class MapUpdate:
 
 
 def encode(block_map: BlockMap, block_ids, version: int, ack_stamp_ns: int, keyframe_stamps_ns,
-           keyframe_poses) -> bytes:
+           keyframe_poses, loop_stamp_ns: int = -1) -> bytes:
     """The update carrying blocks ``block_ids`` of ``block_map``, its decoders and the keyframe poses
-    ``(K, 4, 4)`` with their stamps ``(K,)``."""
+    ``(K, 4, 4)`` with their stamps ``(K,)``; ``loop_stamp_ns`` names the newest loop correction in it."""
     ids = sorted(int(i) for i in block_ids)
     stamps = np.ascontiguousarray(keyframe_stamps_ns, dtype="<i8").reshape(-1)
     poses = np.ascontiguousarray(keyframe_poses, dtype="<f8").reshape(-1, 4, 4)
@@ -88,7 +92,8 @@ def encode(block_map: BlockMap, block_ids, version: int, ack_stamp_ns: int, keyf
     decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().numpy()
     table_numel = block_map.blocks[0].grid.table.numel() if len(block_map) else 0
     parts = [_HEADER.pack(MAGIC, FORMAT_VERSION, 0, version, ack_stamp_ns, len(ids), table_numel,
-                          decoders.size, len(stamps), _HEADER.size)]
+                          decoders.size, len(stamps), _HEADER.size + _HEADER_EXTRA.size),
+             _HEADER_EXTRA.pack(loop_stamp_ns)]
     for i in ids:
         block = block_map.blocks[i]
         centre = block.centre.detach().cpu().numpy()
@@ -108,6 +113,11 @@ def decode(data) -> MapUpdate:
         raise MapUpdateError(f"not a map update: magic {bytes(magic)!r}, expected {MAGIC!r}")
     if fmt != FORMAT_VERSION:
         raise MapUpdateError(f"map update format {fmt} is not supported (this software reads {FORMAT_VERSION})")
+    if header_bytes < _HEADER.size or header_bytes > len(buf):
+        raise MapUpdateError(f"map update header_bytes {header_bytes} is outside {_HEADER.size}..{len(buf)}")
+    loop_stamp = -1
+    if header_bytes >= _HEADER.size + _HEADER_EXTRA.size:
+        (loop_stamp,) = _HEADER_EXTRA.unpack_from(buf, _HEADER.size)
     block_bytes = _BLOCK_HEAD.size + 4 * table_numel
     expected = header_bytes + n_blocks * block_bytes + 4 * n_decoder + 8 * n_kf + 128 * n_kf
     if len(buf) != expected:
@@ -127,7 +137,7 @@ def decode(data) -> MapUpdate:
     stamps = np.frombuffer(buf, "<i8", n_kf, offset)
     offset += 8 * n_kf
     poses = np.frombuffer(buf, "<f8", 16 * n_kf, offset).reshape(n_kf, 4, 4)
-    return MapUpdate(version, ack, blocks, decoders, stamps, poses)
+    return MapUpdate(version, ack, blocks, decoders, stamps, poses, loop_stamp)
 
 
 def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:

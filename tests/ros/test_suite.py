@@ -52,7 +52,7 @@ def offline(small_bag: Path):
     slam = Slam(load_config(CONFIG), frames[0].T_world_cam)
     for f in frames:
         slam.process(f)
-    return slam.trajectory(), frames
+    return slam.trajectory(), frames, slam
 
 
 def _ate_cm(traj, frames) -> float:
@@ -63,7 +63,7 @@ def _ate_cm(traj, frames) -> float:
     return evaluate_ate(traj, gt).rmse_cm
 
 
-def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: bool):
+def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: bool, **launch_args):
     from neb_slam_ros.suite import launch
 
     listener_json = out.parent / f"{out.name}-listener.json"
@@ -71,7 +71,7 @@ def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: boo
                                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         assert "listener ready" in listener.stderr.readline()
-        run = launch(small_bag, out, CONFIG, one_process=one_process, mesh_period_s=8.0, env=env)
+        run = launch(small_bag, out, CONFIG, one_process=one_process, mesh_period_s=8.0, env=env, **launch_args)
         time.sleep(2.0)  # the last path and mesh messages reach the listener
     finally:
         listener.send_signal(signal.SIGINT)
@@ -84,7 +84,7 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
     from neb_slam_core.io.trajectory import read_tum_trajectory
     from neb_slam_core.scene.persistence import load_map
 
-    traj_ref, frames = offline
+    traj_ref, frames = offline[:2]
     assert all(code == 0 for code in run.exit_codes.values()), (run.exit_codes, logs)
     for text in logs.values():
         assert "Traceback" not in text, text
@@ -131,6 +131,31 @@ def test_one_process_slam_replays_a_bag_like_the_offline_engine(small_bag, offli
     _check(run, seen, logs, offline, small_bag)
     for name in ("timings.csv", "blocks.png", "ate_over_time.png"):
         assert (run.run_dir / name).is_file(), name
+
+
+@pytest.mark.parametrize("one_process", [False, True], ids=["separate", "one-process"])
+def test_the_suite_continues_a_saved_map(small_bag, offline, ros_env, tmp_path, one_process):
+    """A mapper (or slam) with ``map_file`` continues the offline run's map: the replay of frames 4-7
+    starts on it (the tracker, with ``wait_for_map``, gets the whole map before its first frame and
+    tracks that frame against it) and computes what the offline engine computes on the same map."""
+    from neb_slam_core.config_io import load_config
+    from neb_slam_core.io.trajectory import read_tum_trajectory
+    from neb_slam_core.scene.persistence import save_map
+    from neb_slam_core.slam import Slam, load_map_for
+
+    _, frames, made = offline
+    map_file = save_map(made.block_map, tmp_path / "map.pt")
+    cfg = load_config(CONFIG)
+    resumed = Slam(cfg, frames[4].T_world_cam, load_map_for(cfg, map_file))
+    results = [resumed.process(f) for f in frames[4:]]
+    assert results[0].tracking_ok and results[0].mapped
+    run, seen, logs = _run_suite(small_bag, tmp_path / "run", ros_env, one_process, start=4, count=4,
+                                 map_file=map_file)
+    assert all(code == 0 for code in run.exit_codes.values()), (run.exit_codes, logs)
+    assert seen["path_stamps_ns"] == [f.stamp_ns for f in frames[4:]]
+    est = read_tum_trajectory(run.run_dir / "trajectory.txt")
+    np.testing.assert_allclose(est.poses, resumed.trajectory().poses, atol=1e-6)
+    assert f"continuing {map_file}" in logs["slam" if one_process else "mapper"]
 
 
 def test_bad_input_is_warned_about_and_skipped_and_the_tracker_keeps_running(ros_env):

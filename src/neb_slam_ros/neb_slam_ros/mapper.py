@@ -11,9 +11,15 @@ blocks, the decoders and the keyframe poses; layout in ``neb_slam_core/scene/map
 ``map.pt``, ``mesh.ply``, ``trajectory.txt`` (every frame of the tracker's latest ``path``, each moved
 with the final pose of its keyframe) and ``config.yaml`` there.
 
+With ``map_file`` (a ``map.pt`` of ``save_map`` or of ``neb-slam run``) it continues that map: its
+blocks and decoders are the starting map, and until the first keyframe arrives the whole map goes out
+on ``map_update`` (version 1) whenever a new subscriber appears, so a tracker started with
+``wait_for_map`` tracks its first frame against it.
+
 Example::
 
     ros2 run neb_slam_ros mapper --ros-args -p config:=tum -p output_dir:=runs/live
+    ros2 run neb_slam_ros mapper --ros-args -p config:=tum -p map_file:=runs/live/map.pt
 """
 
 from __future__ import annotations
@@ -44,7 +50,7 @@ from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import final_log, run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
 from neb_slam_ros.requests import Requests
-from neb_slam_ros.params import declare_config, declare_options, require
+from neb_slam_ros.params import declare_config, declare_options, map_parameter, require
 
 
 @dataclass(frozen=True)
@@ -54,9 +60,11 @@ class MapperOptions:
     output_dir: str = ""
     mesh_period_s: float = 30.0
     frame_id: str = "map"
+    map_file: str = ""
 
     PARAMETER_DOCS = {
         "output_dir": "where save_mesh, save_map and the shutdown write; empty: runs/mapper-<date>-<time>",
+        "map_file": "a map checkpoint (map.pt) to continue; empty: start from an empty map",
         "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
         "frame_id": "frame of the published mesh",
     }
@@ -111,7 +119,8 @@ class MapperNode(Node):
         self.opt = declare_options(self, MapperOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/mapper-%Y%m%d-%H%M%S"))
         torch.manual_seed(self.cfg.seed)
-        self.block_map = new_block_map(self.cfg)
+        loaded = map_parameter(self.cfg, self.opt.map_file)
+        self.block_map = new_block_map(self.cfg) if loaded is None else loaded
         self.backend = Backend(self.cfg, self.block_map)
         self._rng = np.random.default_rng(self.cfg.seed)
         self._cond = threading.Condition()
@@ -136,12 +145,24 @@ class MapperNode(Node):
         self.create_service(Trigger, "save_map", lambda req, res: self._requests.serve("save_map", res))
         if self.opt.mesh_period_s > 0:
             self.create_timer(self.opt.mesh_period_s, lambda: self._requests.submit("publish_mesh"))
+        self._n_update_subscribers = 0
+        if self.opt.map_file:
+            self._base_timer = self.create_timer(0.5, self._offer_loaded_map)
         self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
         self._worker.start()
+        start = f", continuing {self.opt.map_file} ({len(self.block_map)} blocks)" if self.opt.map_file else ""
         self.get_logger().info(f"neb_slam mapper started (config {self.get_parameter('config').value}, "
-                               f"output {self.out})")
+                               f"output {self.out}{start})")
 
     # ------------------------------------------------------------------ callbacks (executor thread)
+
+    def _offer_loaded_map(self) -> None:
+        """Until the first keyframe: the loaded map, whole, to each new map_update subscriber (a
+        volatile topic gives a late subscriber nothing that was sent before it came)."""
+        n = self.pub_update.get_subscription_count()
+        if n > self._n_update_subscribers:
+            self._requests.submit("publish_loaded_map")
+        self._n_update_subscribers = n
 
     def _on_path(self, msg: PathMsg) -> None:
         stamps = np.array([conversions.stamp_ns(p) for p in msg.poses], dtype=np.int64)
@@ -225,6 +246,15 @@ class MapperNode(Node):
         self._publish_update(step.changed_block_ids | self._unsent_blocks, int(kfs[len(kfs) - 1].stamp_ns))
         self._unsent_blocks.clear()
         return True
+
+    def _do_publish_loaded_map(self) -> str:
+        if len(self.backend.keyframes):
+            self._base_timer.cancel()  # the map is moving on: trackers get it from the updates now
+            return "not sent: keyframes have arrived"
+        data = map_update.encode(self.block_map, range(len(self.block_map)), 1, -1, [], np.zeros((0, 4, 4)))
+        self.pub_update.publish(UInt8MultiArray(data=data))
+        self._version = max(self._version, 1)
+        return f"{len(self.block_map)} blocks sent"
 
     def _publish_update(self, block_ids, ack_stamp_ns: int) -> None:
         kfs = self.backend.keyframes

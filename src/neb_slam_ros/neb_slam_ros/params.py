@@ -96,6 +96,21 @@ def declare_options(node: Node, cls: type[T]) -> T:
     return options
 
 
+def map_parameter(cfg, map_file: str, name: str = "map_file"):
+    """The checkpoint ``map_file`` for a node to continue (:func:`~neb_slam_core.slam.load_map_for`), or
+    None when it is empty (the node starts an empty map); a file that cannot be continued is a bad
+    parameter."""
+    from neb_slam_core.errors import DatasetError
+    from neb_slam_core.slam import load_map_for
+
+    if not map_file:
+        return None
+    try:
+        return load_map_for(cfg, map_file)
+    except DatasetError as exc:
+        raise ParameterError(name, str(exc)) from None
+
+
 def require(condition: bool, name: str, expected: str, value: Any) -> None:
     """Raise :class:`ParameterError` for ``name`` unless ``condition``."""
     if not condition:

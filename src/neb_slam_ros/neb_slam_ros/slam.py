@@ -6,7 +6,8 @@ input and publishes what the separate ``tracker`` and ``mapper`` publish for oth
 a ``bag`` parameter the process also runs ``bag_replay`` (its parameters: ``rate``, ``lockstep``, ``start``,
 ``count``, ``loop``) on the same executor, and ends when the bag does. On shutdown it
 writes a complete run directory into ``output_dir``, the same files as ``neb-slam run`` (trajectory,
-ground truth and ATE when ``ground_truth_topic`` is set, timings, metrics, plots, map, mesh).
+ground truth and ATE when ``ground_truth_topic`` is set, timings, metrics, plots, map, mesh). With
+``map_file`` it continues that map checkpoint (the first frame is tracked against it).
 
 Example::
 
@@ -37,7 +38,7 @@ from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import final_log, run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
 from neb_slam_ros.requests import Requests
-from neb_slam_ros.params import declare_config, declare_options, require
+from neb_slam_ros.params import declare_config, declare_options, map_parameter, require
 
 
 @dataclass(frozen=True)
@@ -49,8 +50,10 @@ class SlamOptions:
     frame_id: str = "map"
     initial_pose_timeout_s: float = 10.0
     bag: str = ""
+    map_file: str = ""
 
     PARAMETER_DOCS = {
+        "map_file": "a map checkpoint (map.pt) to continue; empty: start from an empty map",
         "output_dir": "run directory written at shutdown (and by save_mesh / save_map); empty: runs/slam-<date>-<time>",
         "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
         "frame_id": "frame of the published poses and mesh",
@@ -73,6 +76,7 @@ class SlamNode(Node):
         self.opt = declare_options(self, SlamOptions)
         self.input_opt = declare_options(self, InputOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/slam-%Y%m%d-%H%M%S"))
+        self._map = map_parameter(self.cfg, self.opt.map_file)  # checked at start, used at the first frame
         self.slam: Slam | None = None  # made at the first frame (its pose may come from a topic)
         self.run_log = RunLog()
         self._cond = threading.Condition()
@@ -92,8 +96,9 @@ class SlamNode(Node):
             self.create_timer(self.opt.mesh_period_s, lambda: self._requests.submit("publish_mesh"))
         self._worker = threading.Thread(target=self._work, name="slam-worker", daemon=True)
         self._worker.start()
+        start = f", continuing {self.opt.map_file} ({len(self._map)} blocks)" if self._map is not None else ""
         self.get_logger().info(f"neb_slam slam started (config {self.get_parameter('config').value}, "
-                               f"output {self.out})")
+                               f"output {self.out}{start})")
 
     # ------------------------------------------------------------------ worker thread
 
@@ -123,7 +128,7 @@ class SlamNode(Node):
             if self.input_opt.ground_truth_topic and gt is None:
                 self.get_logger().warning(f"no pose on {self.input_opt.ground_truth_topic} near the first frame: "
                                           "starting from the identity")
-            self.slam = Slam(self.cfg, gt)
+            self.slam, self._map = Slam(self.cfg, gt, self._map), None
             self._t_first = time.perf_counter()
             self._intrinsics = frame.intrinsics
         self.run_log.begin(frame)

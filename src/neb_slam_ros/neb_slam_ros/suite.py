@@ -8,6 +8,7 @@ it finishes its keyframes and loop corrections and writes its files; then the tr
 
     python -m neb_slam_ros.suite bags/demo_scene_bag --config synthetic --out runs/demo
     python -m neb_slam_ros.suite bags/fr1_xyz --config tum --one-process
+    python -m neb_slam_ros.suite bags/fr1_xyz --config tum --start 150 --map runs/first_half/map.pt
 
 Separate processes: ``tracker``, ``mapper``, ``loop_closer``, ``bag_replay``. ``--one-process``: the
 ``slam`` executable with the replay inside.
@@ -64,21 +65,25 @@ def _env() -> dict[str, str]:
 
 def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_process: bool = False,
            seed: int = 0, mesh_period_s: float = 0.0, env: dict[str, str] | None = None,
-           extra_params: dict[str, object] | None = None) -> SuiteRun:
-    """Replay ``bag`` (first ``count`` frames; 0: all) through the suite into run directory ``out``."""
+           extra_params: dict[str, object] | None = None, start: int = 0,
+           map_file: Path | None = None) -> SuiteRun:
+    """Replay ``bag`` (``count`` frames from frame ``start``; 0: all) through the suite into run directory
+    ``out``, on an empty map or continuing the checkpoint ``map_file``."""
     out.mkdir(parents=True, exist_ok=True)
     logs_dir = out / "logs"
     logs_dir.mkdir(exist_ok=True)
     env = env or _env()
     engine = {"config": config, "seed": seed, **(extra_params or {})}
     camera = {"reliable_inputs": True, "ground_truth_topic": "ground_truth/pose"}
-    replay = {"bag": str(bag), "lockstep": True, "rate": 0.0, "count": count}
+    replay = {"bag": str(bag), "lockstep": True, "rate": 0.0, "count": count, "start": start}
+    resume = {} if map_file is None else {"map_file": str(map_file)}
     if one_process:
-        plan = {"slam": {**engine, **camera, **replay, "output_dir": str(out), "mesh_period_s": mesh_period_s}}
+        plan = {"slam": {**engine, **camera, **replay, **resume, "output_dir": str(out),
+                         "mesh_period_s": mesh_period_s}}
     else:
-        plan = {"mapper": {**engine, "output_dir": str(out), "mesh_period_s": mesh_period_s},
+        plan = {"mapper": {**engine, **resume, "output_dir": str(out), "mesh_period_s": mesh_period_s},
                 "loop_closer": engine,
-                "tracker": {**engine, **camera, "loop_sync": True},
+                "tracker": {**engine, **camera, "loop_sync": True, "wait_for_map": map_file is not None},
                 "bag_replay": replay}
     procs: dict[str, subprocess.Popen] = {}
     run = SuiteRun(out, {}, 0.0)
@@ -166,12 +171,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", default="synthetic", help="engine config preset or YAML file (default synthetic)")
     p.add_argument("--out", type=Path, help="run directory (default runs/suite-<bag>-<date>-<time>)")
     p.add_argument("--count", type=int, default=0, help="frames to replay (0: all)")
+    p.add_argument("--start", type=int, default=0, help="first frame of the bag to replay (default 0)")
+    p.add_argument("--map", type=Path, help="continue this map checkpoint (a run's map.pt)")
     p.add_argument("--one-process", action="store_true", help="the slam executable instead of separate nodes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--mesh-period", type=float, default=0.0, help="mesh topic period in s (0: at the end only)")
     args = p.parse_args(argv)
     out = args.out or Path(time.strftime(f"runs/suite-{args.bag.name}-%Y%m%d-%H%M%S"))
-    run = launch(args.bag, out, args.config, args.count, args.one_process, args.seed, args.mesh_period)
+    run = launch(args.bag, out, args.config, args.count, args.one_process, args.seed, args.mesh_period,
+                 start=args.start, map_file=args.map)
     bad = {k: v for k, v in run.exit_codes.items() if v != 0}
     m = run.metrics
     print(f"  frames / fps       {m.get('n_frames')} / {m.get('fps') or (m.get('n_frames', 0) / run.wall_s):.3f}")

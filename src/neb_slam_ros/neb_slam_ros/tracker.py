@@ -6,7 +6,10 @@ each frame against its copy of the map (the engine's :class:`~neb_slam_core.slam
 from the mapper's ``map_update`` messages. Before frame 2 it waits for the mapper's first update; with
 ``map_sync`` (default) it also waits, after each keyframe that triggers mapping, for the update that
 integrates it, so it computes exactly what the one-process engine computes; with ``loop_sync`` it waits,
-after each keyframe, for the loop closer's verdict on it as well. Frames that arrive meanwhile
+after each keyframe, for the loop closer's verdict on it as well. With ``wait_for_map`` it waits for a
+map before its first frame (a mapper continuing a checkpoint, ``map_file``) and tracks that frame
+against it, from its first pose (``ground_truth_topic`` or the identity), instead of starting a new
+map. Frames that arrive meanwhile
 are queued (``frame_queue`` of them; older ones are dropped with a counted warning; lockstep replay never
 queues more than one).
 
@@ -49,6 +52,7 @@ class TrackerOptions:
 
     map_sync: bool = True
     loop_sync: bool = False
+    wait_for_map: bool = False
     map_timeout_s: float = 600.0
     initial_pose_timeout_s: float = 10.0
     frame_id: str = "map"
@@ -56,6 +60,7 @@ class TrackerOptions:
     PARAMETER_DOCS = {
         "map_sync": "after a keyframe that triggers mapping, wait for its map update before the next frame",
         "loop_sync": "after each keyframe, wait for the loop closer's verdict on it (needs a loop_closer running)",
+        "wait_for_map": "before the first frame, wait for the map of a mapper that continues a map_file",
         "map_timeout_s": "warn when an awaited map update or loop verdict takes longer than this",
         "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
         "frame_id": "frame of the published poses",
@@ -127,7 +132,8 @@ class TrackerNode(Node):
 
     def _waiting_for_map(self) -> bool:
         """A map update or a loop verdict the next frame has to wait for has not come yet."""
-        return ((self._awaited_ack is not None and self._acked < self._awaited_ack)
+        return ((self.opt.wait_for_map and self._map_version == 0)
+                or (self._awaited_ack is not None and self._acked < self._awaited_ack)
                 or (self._awaited_loop is not None and self._loop_checked < self._awaited_loop))
 
     def _work(self) -> None:
@@ -146,9 +152,12 @@ class TrackerNode(Node):
             if self._waiting_for_map():
                 waited_since = waited_since or time.monotonic()
                 if time.monotonic() - waited_since > self.opt.map_timeout_s:
-                    self.get_logger().warning(f"no map update or loop verdict for keyframe {self._awaited_ack} "
-                                              f"after {self.opt.map_timeout_s:.0f} s: are the mapper and (with "
-                                              "loop_sync) the loop closer running?")
+                    if self._map_version == 0 and self.opt.wait_for_map:
+                        what = "no map yet (wait_for_map): is a mapper with map_file running?"
+                    else:
+                        what = (f"no map update or loop verdict for keyframe {self._awaited_ack}: are the mapper "
+                                "and (with loop_sync) the loop closer running?")
+                    self.get_logger().warning(f"{what} (waited {self.opt.map_timeout_s:.0f} s)")
                     waited_since = time.monotonic()
             else:
                 waited_since = None

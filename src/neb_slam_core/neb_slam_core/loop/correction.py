@@ -25,13 +25,18 @@ Depth interpolation is bilinear where all four neighbours have depth; elsewhere 
 (and the pixel does not count as valid). Depth maps are kept at a stride (``LoopConfig.depth_stride``)
 with intrinsics scaled to match.
 
-Propagation: ``Delta = T_c_new T_c_old^-1`` moves the current keyframe. Keyframes after the loop's
-older end get a share ``w`` of it, ``w`` growing with the path length travelled since that end (0 at
-it, 1 at the current keyframe): rotation ``exp(w log R_Delta)`` about the current keyframe's old
-position plus ``w`` times its displacement. Rotating about that point rather than the world origin
-keeps the keyframes near the current one close to where the full correction puts the current one.
-Consecutive keyframes keep their relative poses up to the small difference of their shares;
-keyframes after the current one (a loop closed while tracking went on) move rigidly with it.
+Propagation, a pose graph over the loop: the keyframes from the loop's older end (held) to the current
+one are the nodes; each consecutive pair is an edge that wants their relative pose as tracking and
+mapping left it, and the loop is one more edge that puts the current keyframe at its fitted pose. The
+nodes minimise the edges' squared errors (rotation vector times 1 m, and translation, in metres), each
+edge weighted by the inverse of the path length it spans (plus 1 cm): tracking drift accumulates with
+the distance travelled, so a long step may absorb more of the correction than a short one. A pure
+translation is then spread in proportion to the path travelled; a rotation is spread over the edges as
+small turns, with the positions following the turned edges. That is how drift accrues: a uniform
+turning drift along a chain is undone exactly (see the tests), where rotating every keyframe by a
+share of the rotation about one point would not. It starts from that simpler spreading and is solved
+with scipy's sparse least squares (each edge sees only its two nodes). Keyframes after the current one
+(a loop closed while tracking went on) move rigidly with it.
 """
 
 from __future__ import annotations
@@ -209,23 +214,76 @@ def interpolate_correction(delta: np.ndarray, pivot: np.ndarray, w: float) -> np
     return make_pose(R_w, pivot - R_w @ pivot + w * displacement)
 
 
-def propagate_correction(poses: np.ndarray, start_id: int, end_id: int, T_end_new: np.ndarray) -> np.ndarray:
-    """Keyframe poses ``(K, 4, 4)`` after moving keyframe ``end_id`` to ``T_end_new``, the loop's older
-    end ``start_id`` and every keyframe before it held (see the module docstring)."""
-    poses = np.array(poses, dtype=np.float64)
-    if not 0 <= start_id < end_id < len(poses):
-        raise ValueError(f"propagate_correction: need 0 <= start_id ({start_id}) < end_id ({end_id}) < {len(poses)}")
+#: rotation errors count as the arc length they sweep at this distance (metres per radian)
+_ROTATION_ARM_M = 1.0
+#: an edge's variance is the path length it spans plus this (metres): no edge is free to absorb it all
+_MIN_EDGE_M = 0.01
+
+
+def _shared_correction(poses: np.ndarray, start_id: int, end_id: int, T_end_new: np.ndarray) -> np.ndarray:
+    """The correction spread by path length, rotation about the current keyframe: the pose graph's start."""
     delta = T_end_new @ invert(poses[end_id])
     pivot = poses[end_id][:3, 3].copy()
     steps = np.linalg.norm(np.diff(poses[start_id:end_id + 1, :3, 3], axis=0), axis=1)
     travelled = np.concatenate([[0.0], np.cumsum(steps)])
     shares = travelled / travelled[-1] if travelled[-1] > 0 else np.linspace(0.0, 1.0, len(travelled))
+    out = poses[start_id:end_id + 1].copy()
+    for k, w in enumerate(shares[1:], start=1):
+        out[k] = interpolate_correction(delta, pivot, float(w)) @ out[k]
+    return out
+
+
+def _edge_errors(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``(n, 6)`` errors of ``inv(A_i) B_i`` (rotation vector times the arm, translation), batched."""
+    E_R = np.einsum("nji,njk->nik", A[:, :3, :3], B[:, :3, :3])
+    E_t = np.einsum("nji,nj->ni", A[:, :3, :3], B[:, :3, 3] - A[:, :3, 3])
+    return np.concatenate([_ROTATION_ARM_M * Rotation.from_matrix(E_R).as_rotvec(), E_t], axis=1)
+
+
+def propagate_correction(poses: np.ndarray, start_id: int, end_id: int, T_end_new: np.ndarray) -> np.ndarray:
+    """Keyframe poses ``(K, 4, 4)`` after moving keyframe ``end_id`` to ``T_end_new``, the loop's older
+    end ``start_id`` and every keyframe before it held (the pose graph of the module docstring)."""
+    from scipy.sparse import lil_matrix
+
+    poses = np.array(poses, dtype=np.float64)
+    T_end_new = np.array(T_end_new, dtype=np.float64)
+    if not 0 <= start_id < end_id < len(poses):
+        raise ValueError(f"propagate_correction: need 0 <= start_id ({start_id}) < end_id ({end_id}) < {len(poses)}")
+    chain = poses[start_id:end_id + 1]
+    n = end_id - start_id                      # edges; nodes 0 (held) and n (the fitted pose) are fixed
+    measured = np.einsum("nij,njk->nik", np.linalg.inv(chain[:-1]), chain[1:])   # Z_i = inv(T_i) T_i+1
+    weights = 1.0 / np.sqrt(np.linalg.norm(measured[:, :3, 3], axis=1) + _MIN_EDGE_M)
+    fixed = chain.copy()
+    fixed[-1] = T_end_new
+
+    def nodes(x: np.ndarray) -> np.ndarray:
+        x = x.reshape(n - 1, 6)
+        out = fixed.copy()
+        out[1:-1, :3, :3] = Rotation.from_rotvec(x[:, :3]).as_matrix() @ chain[1:-1, :3, :3]
+        out[1:-1, :3, 3] = chain[1:-1, :3, 3] + x[:, 3:]
+        return out
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        T = nodes(x)
+        relative = np.einsum("nij,njk->nik", np.linalg.inv(T[:-1]), T[1:])
+        return (_edge_errors(measured, relative) * weights[:, None]).ravel()
+
+    start = _shared_correction(poses, start_id, end_id, T_end_new)
+    x = np.zeros(0)
+    if n > 1:
+        # edge i joins nodes i and i+1; free node k (1..n-1) is x[k-1]
+        sparsity = lil_matrix((6 * n, 6 * (n - 1)), dtype=int)
+        for i in range(n):
+            for k in (i, i + 1):
+                if 1 <= k <= n - 1:
+                    sparsity[6 * i:6 * i + 6, 6 * (k - 1):6 * k] = 1
+        R0 = start[1:-1, :3, :3] @ np.transpose(chain[1:-1, :3, :3], (0, 2, 1))
+        x0 = np.concatenate([Rotation.from_matrix(R0).as_rotvec(), start[1:-1, :3, 3] - chain[1:-1, :3, 3]], axis=1)
+        x = least_squares(residuals, x0.ravel(), jac_sparsity=sparsity, method="trf", x_scale=1e-2,
+                          max_nfev=100).x
     out = poses.copy()
-    for offset, w in enumerate(shares[1:], start=1):
-        k = start_id + offset
-        out[k] = interpolate_correction(delta, pivot, float(w)) @ poses[k]
-    out[end_id] = np.array(T_end_new, dtype=np.float64)  # exact, whatever rounding the share had
-    out[end_id + 1:] = delta @ poses[end_id + 1:]
+    out[start_id:end_id + 1] = nodes(x)
+    out[end_id + 1:] = T_end_new @ invert(poses[end_id]) @ poses[end_id + 1:]
     return out
 
 

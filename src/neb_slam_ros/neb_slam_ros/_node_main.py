@@ -25,6 +25,35 @@ except ImportError:  # pragma: no cover - layout of other rclpy builds
     RCLError = RuntimeError
 
 
+class _PublisherWhileUp:
+    """A publisher that drops its messages once the node's context is shut down. A signal shuts the
+    context down while a worker thread may still be busy (a mapping step, a loop re-optimisation); what
+    it publishes then has no receiver, and rclpy would raise in the worker and kill it."""
+
+    def __init__(self, publisher, context):
+        self._publisher = publisher
+        self._context = context
+
+    def publish(self, msg) -> None:
+        try:
+            self._publisher.publish(msg)
+        except RCLError:
+            if self._context.ok():
+                raise
+
+    def __getattr__(self, name):
+        return getattr(self._publisher, name)
+
+
+class WorkerNode(Node):
+    """The base of our nodes, whose work runs in threads beside the executor's (a worker, the replay):
+    their publishers go quiet (rather than raise) once a signal has shut the context down, so that work
+    goes on to a clean stop, and ``close()`` then finishes it and writes the outputs."""
+
+    def create_publisher(self, *args, **kwargs):
+        return _PublisherWhileUp(super().create_publisher(*args, **kwargs), self.context)
+
+
 def final_log(node: Node, text: str, level: str = "INFO") -> None:
     """A log line from ``close()``: the ROS context is shut down by then, so rclpy's logger (which also
     publishes to /rosout) would complain; this writes the same format to stderr only."""

@@ -25,14 +25,13 @@ from dataclasses import dataclass
 
 import rclpy
 from geometry_msgs.msg import PoseStamped
-from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
 
 from neb_slam_core.datasets.bag import BagDataset
 from neb_slam_core.errors import DatasetError
 from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import run_node
+from neb_slam_ros._node_main import WorkerNode, run_node
 from neb_slam_ros.params import ParameterError, declare_options, require
 
 
@@ -75,7 +74,7 @@ class ReplayOptions:
         require(self.depth_scale > 0, "depth_scale", "> 0", self.depth_scale)
 
 
-class BagReplayNode(Node):
+class BagReplayNode(WorkerNode):
     """Publishes a bag's frames; see the module docstring."""
 
     def __init__(self) -> None:

@@ -27,12 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from nav_msgs.msg import Path
-from rclpy.node import Node
 from std_msgs.msg import UInt8MultiArray
 
 from neb_slam_core.loop.closer import LoopCloser
 from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import final_log, run_node
+from neb_slam_ros._node_main import WorkerNode, final_log, run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
 from neb_slam_ros.params import declare_config, declare_options, require
 
@@ -49,7 +48,7 @@ class LoopCloserOptions:
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
 
 
-class LoopCloserNode(Node):
+class LoopCloserNode(WorkerNode):
     """Detects loops among the keyframes and publishes their corrections; see the module docstring."""
 
     def __init__(self) -> None:

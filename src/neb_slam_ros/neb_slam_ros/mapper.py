@@ -34,7 +34,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from nav_msgs.msg import Path as PathMsg
-from rclpy.node import Node
 from std_msgs.msg import UInt8MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -47,7 +46,7 @@ from neb_slam_core.scene import map_update
 from neb_slam_core.scene.persistence import save_map
 from neb_slam_core.slam import Backend, new_block_map
 from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import final_log, run_node
+from neb_slam_ros._node_main import WorkerNode, final_log, run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
 from neb_slam_ros.requests import Requests
 from neb_slam_ros.params import declare_config, declare_options, map_parameter, require
@@ -110,7 +109,7 @@ def split_by_block(mesh, block_map) -> dict[int, tuple[np.ndarray, np.ndarray, n
     return {int(b): (verts, faces[owner == b], colours) for b in np.unique(owner) if b >= 0}
 
 
-class MapperNode(Node):
+class MapperNode(WorkerNode):
     """Integrates keyframes and optimises the map; see the module docstring."""
 
     def __init__(self) -> None:

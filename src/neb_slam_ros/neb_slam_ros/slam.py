@@ -35,7 +35,7 @@ from visualization_msgs.msg import MarkerArray
 from neb_slam_core.io.run_dir import RunDirectory, RunLog, RunOutputOptions, write_run
 from neb_slam_core.slam import Slam
 from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import final_log, run_nodes
+from neb_slam_ros._node_main import WorkerNode, final_log, run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
 from neb_slam_ros.requests import Requests
 from neb_slam_ros.params import declare_config, declare_options, map_parameter, require
@@ -67,7 +67,7 @@ class SlamOptions:
         require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
 
 
-class SlamNode(Node):
+class SlamNode(WorkerNode):
     """Tracking and mapping in one engine; see the module docstring."""
 
     def __init__(self) -> None:

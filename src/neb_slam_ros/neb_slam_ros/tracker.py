@@ -32,7 +32,6 @@ import numpy as np
 import torch
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String, UInt8MultiArray
 from visualization_msgs.msg import MarkerArray
@@ -40,7 +39,7 @@ from visualization_msgs.msg import MarkerArray
 from neb_slam_core.scene import map_update
 from neb_slam_core.slam import Frontend, new_block_map
 from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import final_log, run_node
+from neb_slam_ros._node_main import WorkerNode, final_log, run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta
 from neb_slam_ros.camera_input import CameraInput, InputOptions
 from neb_slam_ros.params import declare_config, declare_options, require
@@ -72,7 +71,7 @@ class TrackerOptions:
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
 
 
-class TrackerNode(Node):
+class TrackerNode(WorkerNode):
     """Tracks every frame against the latest map it has; see the module docstring."""
 
     def __init__(self) -> None:

@@ -1,0 +1,33 @@
+"""The nodes' shared base: a worker thread that publishes after a signal shut the context down (a mapping
+step or loop re-optimisation still running) is not killed by rclpy's error."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+pytestmark = [pytest.mark.ros, pytest.mark.filterwarnings("ignore::DeprecationWarning:lark.*")]
+
+
+def test_publishing_after_shutdown_is_dropped_not_raised(ros_env, monkeypatch):
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.node import Node
+    from std_msgs.msg import String
+
+    from neb_slam_ros._node_main import RCLError, WorkerNode
+
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        monkeypatch.setitem(os.environ, key, ros_env[key])
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    plain = Node("plain", context=context)
+    ours = WorkerNode("ours", context=context)
+    pub_plain = plain.create_publisher(String, "chatter", 1)
+    pub_ours = ours.create_publisher(String, "chatter", 1)
+    pub_ours.publish(String(data="while up"))  # a working publisher
+    assert pub_ours.get_subscription_count() == 0 and pub_ours.topic_name == "/chatter"
+    rclpy.shutdown(context=context)
+    with pytest.raises(RCLError):
+        pub_plain.publish(String(data="after shutdown"))  # what killed the mapper's worker
+    pub_ours.publish(String(data="after shutdown"))       # dropped quietly

@@ -326,7 +326,7 @@ class LoopConfig:
     min_valid_share: float = 0.3
     min_correction_cm: float = 1.0
     min_correction_deg: float = 0.5
-    map_iterations: int = 50
+    map_iterations: int = 200
     joint_iterations: int = 50
 
 

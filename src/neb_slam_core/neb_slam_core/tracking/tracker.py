@@ -25,7 +25,7 @@ from ..render.sampling import sample_depths
 from ..scene.block_map import BlockMap
 from ..scene.freeze import frozen
 from ..types import RgbdFrame
-from .gauss_newton import apply_step, evaluate_pose, normal_equations
+from .gauss_newton import apply_step, evaluate_pose, normal_equations, spatial_gradients
 
 
 @dataclass
@@ -51,9 +51,13 @@ class TrackingResult:
 class Tracker:
     """Pose optimisation against a fixed map, by Adam (the paper) or Levenberg-Marquardt."""
 
-    def __init__(self, cfg: TrackingConfig, render_cfg: RenderConfig, seed: int = 0):
+    def __init__(self, cfg: TrackingConfig, render_cfg: RenderConfig, seed: int = 0,
+                 gradients=spatial_gradients):
+        """``gradients``: how Levenberg-Marquardt gets the samples' spatial gradients
+        (:func:`~neb_slam_core.tracking.gauss_newton.spatial_gradients`, or its autograd reference)."""
         self.cfg = cfg
         self.render_cfg = render_cfg
+        self.gradients = gradients
         self.rng = np.random.default_rng(seed)
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -107,7 +111,7 @@ class Tracker:
         ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids)
         if ev.n_valid_rays < c.min_valid_rays:
             return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, 0)
-        H, g = normal_equations(ev, block_map, ids, tr)
+        H, g = normal_equations(ev, block_map, ids, tr, self.gradients)
         damping = c.gn_damping
         steps = 0
         for steps in range(1, c.iterations + 1):
@@ -128,5 +132,5 @@ class Tracker:
             if np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) < c.gn_stop_step_m:
                 break
             if accepted and steps < c.iterations:
-                H, g = normal_equations(ev, block_map, ids, tr)
+                H, g = normal_equations(ev, block_map, ids, tr, self.gradients)
         return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, steps)

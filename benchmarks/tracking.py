@@ -1,0 +1,140 @@
+"""Tracking cost per frame, and what the Gauss-Newton Jacobian's spatial gradients cost two ways.
+
+On TUM fr1_xyz (``../shared/data/tum_fr1_xyz_300``, ``tum`` config), in one run:
+
+1. fit a map to ``--fit-frames`` frames with their ground-truth poses (``--fit-iterations`` of the
+   config's mapping rays);
+2. for ``--track-frames`` later frames, from a pose 1 cm and 0.5 degree off, evaluate the objective
+   and build the Gauss-Newton system with the samples' spatial gradients by forward differences (one
+   batched query, the engine's way) and by autograd (one backward pass per output, the reference):
+   ``normal_equations_ms_fd``, ``normal_equations_ms_autograd`` and their ratio; the two systems'
+   largest relative difference (``max_rel_diff_H``);
+3. track the same frames (the engine's tracker): ``track_ms`` per frame and its steps; and again with
+   the autograd gradients: how far apart the two trackers' poses end (``pose_gap_to_autograd_mm``).
+
+Each timing is the median over ``--repeats`` passes.
+
+Example::
+
+    .venv/bin/python benchmarks/tracking.py --json tracking.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from neb_slam_core.config_io import load_config
+from neb_slam_core.datasets import open_dataset
+from neb_slam_core.geometry.rectify import Rectifier
+from neb_slam_core.mapping.fit import FitConfig, FrameRayPool, allocate_blocks, fit_map
+from neb_slam_core.render.rays import sample_pixels
+from neb_slam_core.render.sampling import sample_depths
+from neb_slam_core.scene.freeze import frozen
+from neb_slam_core.slam import new_block_map
+from neb_slam_core.tracking.gauss_newton import (evaluate_pose, normal_equations, spatial_gradients,
+                                                 spatial_gradients_autograd)
+from neb_slam_core.tracking.tracker import Tracker
+
+REPO = Path(__file__).resolve().parents[1]
+TUM = Path(os.environ.get("NEB_SLAM_SHARED_DATA", REPO.parent / "shared" / "data")) / "tum_fr1_xyz_300"
+
+
+def median_ms(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(1e3 * (time.perf_counter() - t0))
+    return float(np.median(times))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--fit-frames", type=int, default=30, help="frames 0, 2, 4, ... the map is fitted to")
+    p.add_argument("--fit-iterations", type=int, default=1000)
+    p.add_argument("--track-frames", type=int, default=5)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    args = p.parse_args()
+    if not TUM.is_dir():
+        sys.exit(f"{TUM} not found: this benchmark needs the TUM frames of ../shared/data")
+    cfg = load_config("tum")
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    rectify = Rectifier()
+    ds = open_dataset(TUM)
+    usable = [i for i in range(len(ds)) if ds[i].T_world_cam is not None]
+    fit = [rectify(ds[i]) for i in usable[:2 * args.fit_frames:2]]
+    tracked = [rectify(ds[i]) for i in usable[2 * args.fit_frames:2 * args.fit_frames + args.track_frames]]
+    s = cfg.render.sampling
+    block_map = new_block_map(cfg)
+    allocate_blocks(block_map, fit, [f.T_world_cam for f in fit], s.near_m, s.far_m, rng)
+    fit_map(block_map, FrameRayPool(fit, [f.T_world_cam for f in fit]), cfg.render,
+            FitConfig(iterations=args.fit_iterations, rays_per_iteration=cfg.mapping.n_rays), seed=cfg.seed,
+            progress=True)
+
+    starts = []
+    for f in tracked:  # 1 cm and 0.5 degree off, as a constant-velocity prediction would be
+        T = f.T_world_cam.copy()
+        T[:3, :3] = Rotation.from_rotvec(np.radians(0.5) * np.array([0.6, 0.0, 0.8])).as_matrix() @ T[:3, :3]
+        T[:3, 3] += np.array([0.006, -0.006, 0.0057])
+        starts.append(T)
+
+    ne_fd, ne_auto, ev_ms, rel = [], [], [], []
+    tr = cfg.render.truncation_m
+    with frozen(block_map):
+        for f, T in zip(tracked, starts):
+            px = sample_pixels(f, cfg.tracking.n_rays, rng, valid_depth_only=True)
+            z = sample_depths(px.depth_m, s, stratified=True, generator=torch.Generator().manual_seed(cfg.seed))
+            ids = block_map.blocks_in_frustum(T, f.intrinsics, s.near_m, s.far_m)
+            ev_ms.append(median_ms(lambda: evaluate_pose(block_map, px, T, z, cfg.render, ids), args.repeats))
+            ev = evaluate_pose(block_map, px, T, z, cfg.render, ids)
+            ne_fd.append(median_ms(lambda: normal_equations(ev, block_map, ids, tr, spatial_gradients), args.repeats))
+            ne_auto.append(median_ms(lambda: normal_equations(ev, block_map, ids, tr, spatial_gradients_autograd),
+                                     args.repeats))
+            H_fd, _ = normal_equations(ev, block_map, ids, tr, spatial_gradients)
+            H_auto, _ = normal_equations(ev, block_map, ids, tr, spatial_gradients_autograd)
+            rel.append(float(np.abs(H_fd - H_auto).max() / np.abs(H_auto).max()))
+
+    track_ms, steps, gaps = [], [], []
+    for f, T in zip(tracked, starts):
+        t0 = time.perf_counter()
+        result = Tracker(cfg.tracking, cfg.render, seed=cfg.seed).track(block_map, f, T)
+        track_ms.append(1e3 * (time.perf_counter() - t0))
+        steps.append(result.iterations)
+        reference = Tracker(cfg.tracking, cfg.render, seed=cfg.seed, gradients=spatial_gradients_autograd).track(
+            block_map, f, T)
+        gaps.append(1e3 * float(np.linalg.norm(result.T_world_cam[:3, 3] - reference.T_world_cam[:3, 3])))
+
+    figures = {
+        "normal_equations_ms_fd": round(float(np.median(ne_fd)), 1),
+        "normal_equations_ms_autograd": round(float(np.median(ne_auto)), 1),
+        "normal_equations_ratio": round(float(np.median(ne_auto)) / float(np.median(ne_fd)), 2),
+        "evaluate_pose_ms": round(float(np.median(ev_ms)), 1),
+        "max_rel_diff_H": round(max(rel), 4),
+        "track_ms": round(float(np.median(track_ms)), 1),
+        "track_steps": steps,
+        "pose_gap_to_autograd_mm": [round(g, 3) for g in gaps],
+        "n_rays": cfg.tracking.n_rays,
+        "threads": torch.get_num_threads(),
+        "load_average": round(os.getloadavg()[0], 2),
+    }
+    print(f"normal equations: {figures['normal_equations_ms_fd']} ms by forward differences, "
+          f"{figures['normal_equations_ms_autograd']} ms by autograd (x{figures['normal_equations_ratio']}); "
+          f"tracking {figures['track_ms']} ms per frame")
+    print(json.dumps(figures, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

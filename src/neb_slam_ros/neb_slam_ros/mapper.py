@@ -208,6 +208,9 @@ class MapperNode(WorkerNode):
 
     def _integrate(self, parts: dict) -> None:
         meta: KeyframeMeta = parts["meta"]
+        if meta.first and self.opt.map_file:
+            self.get_logger().error("the tracker started a new map instead of continuing map_file (start it with "
+                                    "wait_for_map:=true): its map and this one differ from here on")
         for centre in meta.block_centres[len(self.block_map):]:
             block = self.block_map.add_block(torch.as_tensor(centre, dtype=torch.float32))
             self._unsent_blocks.add(block.block_id)

@@ -13,6 +13,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.filterwarnings("ignore::DeprecationWa
 def test_publishing_after_shutdown_is_dropped_not_raised(ros_env, monkeypatch):
     rclpy = pytest.importorskip("rclpy")
     from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
     from std_msgs.msg import String
 
     from neb_slam_ros._node_main import RCLError, WorkerNode
@@ -20,7 +21,7 @@ def test_publishing_after_shutdown_is_dropped_not_raised(ros_env, monkeypatch):
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
         monkeypatch.setitem(os.environ, key, ros_env[key])
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)  # leave pytest's own
     plain = Node("plain", context=context)
     ours = WorkerNode("ours", context=context)
     pub_plain = plain.create_publisher(String, "chatter", 1)

@@ -21,7 +21,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from dataclasses import replace
@@ -29,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
+from common import predicted_start, report
 from neb_slam_core.config_io import load_config
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.mapping.fit import FitConfig, FrameRayPool, allocate_blocks, fit_map
@@ -84,12 +83,7 @@ def main() -> None:
             progress=True)
 
     timed = start[1::max(1, len(start) // args.track_frames)][:args.track_frames]
-    starts = []
-    for f in timed:  # 1 cm and 0.5 degree off, as a constant-velocity prediction would be
-        T = f.T_world_cam.copy()
-        T[:3, :3] = Rotation.from_rotvec(np.radians(0.5) * np.array([0.6, 0.0, 0.8])).as_matrix() @ T[:3, :3]
-        T[:3, 3] += np.array([0.006, -0.006, 0.0057])
-        starts.append(T)
+    starts = [predicted_start(f.T_world_cam) for f in timed]
     one_ms, one_view = time_tracking(tracker_cfg, cfg.render, block_map, timed, starts, args.repeats)
 
     allocate_blocks(block_map, frames, [f.T_world_cam for f in frames], s.near_m, s.far_m, rng)
@@ -111,9 +105,7 @@ def main() -> None:
     }
     print(f"tracking per frame: {one_ms:.1f} ms with {n_start} block(s), {many_ms:.1f} ms with {len(block_map)} "
           f"blocks (x{many_ms / one_ms:.3f}); blocks in the timed frusta: {one_view} -> {many_view}")
-    print(json.dumps(figures, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    report(figures, args.json)
 
 
 if __name__ == "__main__":

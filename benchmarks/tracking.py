@@ -22,7 +22,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -30,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
+from common import predicted_start, report
 from neb_slam_core.config_io import load_config
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.geometry.rectify import Rectifier
@@ -82,12 +81,7 @@ def main() -> None:
             FitConfig(iterations=args.fit_iterations, rays_per_iteration=cfg.mapping.n_rays), seed=cfg.seed,
             progress=True)
 
-    starts = []
-    for f in tracked:  # 1 cm and 0.5 degree off, as a constant-velocity prediction would be
-        T = f.T_world_cam.copy()
-        T[:3, :3] = Rotation.from_rotvec(np.radians(0.5) * np.array([0.6, 0.0, 0.8])).as_matrix() @ T[:3, :3]
-        T[:3, 3] += np.array([0.006, -0.006, 0.0057])
-        starts.append(T)
+    starts = [predicted_start(f.T_world_cam) for f in tracked]
 
     ne_fd, ne_auto, ev_ms, rel = [], [], [], []
     tr = cfg.render.truncation_m
@@ -131,9 +125,7 @@ def main() -> None:
     print(f"normal equations: {figures['normal_equations_ms_fd']} ms by forward differences, "
           f"{figures['normal_equations_ms_autograd']} ms by autograd (x{figures['normal_equations_ratio']}); "
           f"tracking {figures['track_ms']} ms per frame")
-    print(json.dumps(figures, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    report(figures, args.json)
 
 
 if __name__ == "__main__":

@@ -297,7 +297,10 @@ class LoopConfig:
     ``depth_stride``-th pixel), starting from the geometric check's pose; it is applied when the fit
     ends below ``max_fit_rms_px`` with at least ``min_valid_share`` of the pixel/keyframe pairs valid,
     and when it moves the keyframe by at least ``min_correction_cm`` or ``min_correction_deg`` (a
-    smaller one is within what mapping refines anyway). Then the correction is spread along the loop,
+    smaller one is within what mapping refines anyway). Then the correction is spread along the loop by
+    a pose graph whose edges are the tracked relative poses and, beside them, each keyframe's depth
+    registered (by the same objective and tests) against the ``register_neighbours`` keyframes before
+    it (0: tracked edges only),
     and the map re-optimised in two stages: ``map_iterations`` with the poses fixed, then
     ``joint_iterations`` of poses and map (the paper gives no counts; ours are measured, see README).
     """
@@ -326,6 +329,7 @@ class LoopConfig:
     min_valid_share: float = 0.3
     min_correction_cm: float = 1.0
     min_correction_deg: float = 0.5
+    register_neighbours: int = 2
     map_iterations: int = 200
     joint_iterations: int = 50
 

@@ -450,6 +450,7 @@ RULES: dict[str, Any] = {
     "loop.min_valid_share": _Num(0.0, 1.0, lo_open=False, hi_open=False),
     "loop.min_correction_cm": _Num(0.0, lo_open=False),
     "loop.min_correction_deg": _Num(0.0, lo_open=False),
+    "loop.register_neighbours": _COUNT,
     "loop.map_iterations": _COUNT,
     "loop.joint_iterations": _COUNT,
 }

@@ -7,9 +7,14 @@
 
 Detection is :class:`~neb_slam_core.loop.detector.LoopDetector` (bag of words and a geometric check);
 the correction is :mod:`~neb_slam_core.loop.correction` (the paper's reprojection objective through the
-loop keyframes' depths, then interpolation along the keyframes of the loop). What the map does with the
+loop keyframes' depths, then a pose graph along the keyframes of the loop). What the map does with the
 corrected poses (two-stage re-optimisation) is the engine's part. The closer holds no poses: it is
 handed the current ones, so it works the same in one process and behind a ROS topic.
+
+Each keyframe is also registered against the ``register_neighbours`` keyframes before it, by the loop
+fit's objective through their depth maps, starting from the relative pose tracking gave: the pose
+graph's registration edges (:func:`~neb_slam_core.loop.correction.propagate_correction`). A
+registration is kept when it passes the same tests as a loop fit (RMS and share of valid pixels).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..config import LoopConfig
+from ..geometry.se3 import invert
 from ..types import LoopEvent, RgbdFrame
 from .correction import (DepthView, correction_size, fit_loop_pose, propagate_correction, sample_pixels,
                          strided_view)
@@ -34,6 +40,8 @@ class LoopCloser:
         self.detector = LoopDetector(cfg, vocabulary)
         self.rng = np.random.default_rng(seed)
         self._views: dict[int, DepthView] = {}  # strided depth; the pose is filled in at query time
+        #: registration edges: (i, j) -> inv(T_i) T_j measured by depth registration of j against i
+        self.registrations: dict[tuple[int, int], np.ndarray] = {}
 
     def __len__(self) -> int:
         return len(self.detector)
@@ -47,6 +55,7 @@ class LoopCloser:
         """Query for keyframe ``keyframe_id`` (already added; ``frame`` is it) with the current keyframe
         poses ``(K, 4, 4)``; returns the loop event (None: no loop) and, when applied, the corrected poses."""
         cfg = self.cfg
+        self._register(keyframe_id, poses, frame)
         query = self.detector.query(keyframe_id)
         detection = query.detection
         if detection is None:
@@ -73,5 +82,22 @@ class LoopCloser:
         if cm < cfg.min_correction_cm and deg < cfg.min_correction_deg:
             return event(False, f"correction {cm:.2f} cm / {deg:.2f} deg below {cfg.min_correction_cm:g} cm / "
                                 f"{cfg.min_correction_deg:g} deg: nothing to correct"), None
-        corrected = propagate_correction(poses, min(ids), keyframe_id, fit.T_world_cam)
+        corrected = propagate_correction(poses, min(ids), keyframe_id, fit.T_world_cam, self.registrations)
         return event(True), corrected
+
+    def _register(self, keyframe_id: int, poses: np.ndarray, frame: RgbdFrame) -> None:
+        """Registration edges from the ``register_neighbours`` keyframes added before ``keyframe_id``."""
+        cfg = self.cfg
+        order = list(self._views)
+        position = order.index(int(keyframe_id))
+        earlier = order[max(0, position - cfg.register_neighbours):position]
+        if not earlier:
+            return
+        pixels, depths = sample_pixels(frame.depth_m, cfg.correction_pixels, self.rng)
+        T_now = np.asarray(poses[keyframe_id], dtype=np.float64)
+        for i in earlier:
+            T_i = np.asarray(poses[i], dtype=np.float64)
+            view = replace(self._views[i], T_world_cam=T_i)
+            fit = fit_loop_pose(T_now, pixels, depths, frame.intrinsics, [view], loss_scale_px=1.0)
+            if fit.rms_px <= cfg.max_fit_rms_px and fit.n_valid >= cfg.min_valid_share * len(pixels):
+                self.registrations[(int(i), int(keyframe_id))] = invert(T_i) @ fit.T_world_cam

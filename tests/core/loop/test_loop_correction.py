@@ -108,6 +108,42 @@ def test_propagation_undoes_a_uniform_turning_drift_exactly():
     assert np.abs(shared[:, :3, 3] - gt[:, :3, 3]).max() > 0.3
 
 
+def test_registration_edges_send_the_correction_to_where_tracking_drifted():
+    """A straight chain of 10 steps of 20 cm along x; tracking got step 4 wrong by 5 cm (everything after
+    it is 5 cm further along), every other step right. Registrations measure all 10 steps right. With the
+    end put back at its true place, the pose graph is a weighted least-squares chain (the rotations stay
+    zero: the disagreement is along the chain): the two edges of step 4, weights w' (tracked, 25 cm) and
+    w (registered, 20 cm), act as one edge of precision w'^2 + w^2 that wants 5 cm x w'^2 / (w'^2 + w^2)
+    too much; every other step is two agreeing edges of precision 2 w^2; the excess comes off each step
+    in proportion to 1 / precision. Without the registrations the whole 5 cm is spread by path length
+    and the keyframes before the wrong step move most."""
+    n, s, m, delta = 10, 0.2, 4, 0.05
+    gt = np.stack([pose([0, 0, 0], [s * k, 0.0, 0.0]) for k in range(n + 1)])
+    tracked = gt.copy()
+    tracked[m + 1:, 0, 3] += delta
+    registrations = {(k, k + 1): invert(gt[k]) @ gt[k + 1] for k in range(n)}
+    registrations[(0, 5)] = pose([0, 0, 30.0], [9.0, 9.0, 9.0])   # starts outside the chain (1..n): ignored
+    out = propagate_correction(tracked, 1, n, gt[-1], registrations)
+
+    w2, w2_wrong = 1.0 / (s + 0.01), 1.0 / (s + delta + 0.01)     # squared weights: 1 / (length + 1 cm)
+    precision = np.full(n, 2 * w2)
+    precision[m] = w2 + w2_wrong
+    want = np.full(n, s)
+    want[m] += delta * w2_wrong / (w2 + w2_wrong)
+    free = np.arange(1, n)                                        # steps 1..n-1 lie between the held ends
+    steps = want.copy()
+    steps[free] -= (want[free].sum() - s * (n - 1)) * (1 / precision[free]) / (1 / precision[free]).sum()
+    expected_x = np.concatenate([[0.0], np.cumsum(steps)])
+    np.testing.assert_allclose(out[:, 0, 3], expected_x, atol=1e-5)
+    np.testing.assert_allclose(out[:, 1:3, 3], 0.0, atol=1e-6)
+    assert max(correction_size(gt[k], out[k])[1] for k in range(n + 1)) < 1e-4
+
+    error_with = np.abs(out[:, 0, 3] - gt[:, 0, 3]).max()
+    plain = propagate_correction(tracked, 1, n, gt[-1])
+    error_without = np.abs(plain[:, 0, 3] - gt[:, 0, 3]).max()
+    assert error_with < 0.6 * error_without, (error_with, error_without)
+
+
 def test_propagation_holds_the_start_and_moves_the_rest_with_the_end():
     # keyframes every 1 m along x (then one more after the loop's end); the end is moved 40 cm along y
     poses = np.stack([pose([0, 0, 0], [float(i), 0.0, 0.0]) for i in range(7)])

@@ -392,6 +392,7 @@ RULES: dict[str, Any] = {
     "render.sampling.near_m": _NON_NEGATIVE,
     "render.sampling.far_m": _POSITIVE,
     "render.sampling.surface_range_m": _POSITIVE,
+    "render.sampling.skip_behind_m": _NON_NEGATIVE,
     "render.weights.colour": _NON_NEGATIVE,
     "render.weights.depth": _NON_NEGATIVE,
     "render.weights.sdf": _NON_NEGATIVE,
@@ -504,6 +505,10 @@ def config_problems(cfg: SlamConfig) -> list[ConfigProblem]:
          f"> block.edge_m ({b.edge_m:g}): a block must not see the one-blob code repeat")
     need("render.sampling.far_m", ("render.sampling.near_m",), lambda: s.far_m > s.near_m,
          f"> render.sampling.near_m ({s.near_m:g})")
+    need("render.sampling.skip_behind_m", ("render.truncation_m",),
+         lambda: s.skip_behind_m == 0 or s.skip_behind_m >= cfg.render.truncation_m,
+         f"0 (off) or >= render.truncation_m ({cfg.render.truncation_m:g}): the SDF loss needs the samples "
+         f"up to the truncation distance behind the measured depth")
     need("render.smoothness_step_m", ("block.edge_m",), lambda: cfg.render.smoothness_step_m < b.edge_m,
          f"< block.edge_m ({b.edge_m:g})")
     need("mesh.voxel_size_m", ("block.edge_m",), lambda: cfg.mesh.voxel_size_m < b.edge_m,

@@ -4,12 +4,30 @@ from __future__ import annotations
 
 import torch
 
-from ..config import RenderConfig
-from ..scene.block_map import BlockMap
+from ..config import RenderConfig, SamplingConfig
+from ..scene.block_map import BlockMap, MapSample
 from .losses import LossTerms, colour_loss, combine, depth_loss, sdf_losses, smoothness_loss
 from .rays import RayBatch
-from .sampling import sample_depths
+from .sampling import evaluated_samples, sample_depths
 from .volume import RenderOutput, composite, observed_rays, sdf_weights
+
+
+def query_samples(block_map: BlockMap, points: torch.Tensor, z: torch.Tensor, depth_m: torch.Tensor,
+                  sampling: SamplingConfig, block_ids: list[int] | None = None, with_colour: bool = True) -> MapSample:
+    """The map at the ``(R, S, 3)`` sample points of ``R`` rays (depths ``z`` (R, S), measured depth
+    ``depth_m`` (R,)), flattened to ``R * S``. Samples too far behind the measured depth
+    (:func:`~neb_slam_core.render.sampling.evaluated_samples`) are not evaluated and come back invalid,
+    as if outside every block; gradients reach the evaluated ones only."""
+    flat = points.reshape(-1, 3)
+    keep = evaluated_samples(z, depth_m, sampling.skip_behind_m)
+    if keep is None or bool(keep.all()):
+        return block_map.query(flat, block_ids, with_colour=with_colour)
+    idx = keep.reshape(-1).nonzero(as_tuple=True)[0]
+    part = block_map.query(flat[idx], block_ids, with_colour=with_colour)
+    n = flat.shape[0]
+    return MapSample(part.sdf.new_zeros(n).index_copy(0, idx, part.sdf),
+                     part.rgb.new_zeros(n, 3).index_copy(0, idx, part.rgb),
+                     part.valid.new_zeros(n).index_copy(0, idx, part.valid))
 
 
 def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
@@ -17,14 +35,15 @@ def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_id
                 with_colour: bool = True, z: torch.Tensor | None = None) -> RenderOutput:
     """Sample, query the blocks ``block_ids`` (all when None) and composite ``R`` rays.
 
-    Samples outside every consulted block are discarded (weight 0), as the paper prescribes. ``z``
-    (R, S) gives the sample depths instead of drawing them.
+    Samples outside every consulted block are discarded (weight 0), as the paper prescribes, and so are
+    samples too far behind the measured depth (:func:`query_samples`). ``z`` (R, S) gives the sample
+    depths instead of drawing them.
     """
     if z is None:
         z = sample_depths(rays.depth_m, cfg.sampling, stratified=stratified, generator=generator)  # (R, S)
     r, s = z.shape
     points = rays.origins[:, None, :] + z[..., None] * rays.dirs[:, None, :]  # (R, S, 3)
-    sample = block_map.query(points.reshape(-1, 3), block_ids, with_colour=with_colour)
+    sample = query_samples(block_map, points, z, rays.depth_m, cfg.sampling, block_ids, with_colour)
     sdf = sample.sdf.reshape(r, s)
     valid = sample.valid.reshape(r, s)
     w = sdf_weights(sdf, z, valid, cfg.truncation_m)

@@ -39,3 +39,12 @@ def sample_depths(depth_m: torch.Tensor, cfg: SamplingConfig, stratified: bool =
     hi = torch.where(valid, depth_m + cfg.surface_range_m, torch.full_like(depth_m, cfg.far_m))
     z_surface = lo[:, None] + (hi - lo)[:, None] * t
     return torch.sort(torch.cat([z_uniform, z_surface], dim=1), dim=1).values
+
+
+def evaluated_samples(z: torch.Tensor, depth_m: torch.Tensor, skip_behind_m: float) -> torch.Tensor | None:
+    """``(R, S)`` bool: the samples at depths ``z`` worth evaluating on rays with measured ``depth_m``
+    ``(R,)``: all but those more than ``skip_behind_m`` behind a measured depth (see
+    :class:`~neb_slam_core.config.SamplingConfig`). None when every sample is (``skip_behind_m`` 0)."""
+    if skip_behind_m <= 0:
+        return None
+    return ~((depth_m > 0)[:, None] & (z > (depth_m + skip_behind_m)[:, None]))

@@ -36,6 +36,7 @@ import torch
 from ..config import RenderConfig
 from ..geometry.lie import compose_delta
 from ..render.rays import PixelSamples
+from ..render.renderer import query_samples
 from ..render.volume import observed_rays, sdf_weights
 from ..scene.block_map import BlockMap
 
@@ -125,7 +126,7 @@ def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.nda
     r_count, s_count = z.shape
     points = rays.origins[:, None, :] + z[..., None] * rays.dirs[:, None, :]  # (R, S, 3)
     with torch.no_grad():
-        sample = block_map.query(points.reshape(-1, 3), block_ids, with_colour=True)
+        sample = query_samples(block_map, points, z, pixels.depth_m, cfg.sampling, block_ids)
     valid = sample.valid.reshape(r_count, s_count)
 
     # rendering, differentiable in the samples' SDF (colours enter linearly)

@@ -23,37 +23,20 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from common import predicted_start, report
+from common import fitted_tum_map, median_ms, predicted_start, report
 from neb_slam_core.config_io import load_config
-from neb_slam_core.datasets import open_dataset
-from neb_slam_core.geometry.rectify import Rectifier
-from neb_slam_core.mapping.fit import FitConfig, FrameRayPool, allocate_blocks, fit_map
 from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.sampling import sample_depths
 from neb_slam_core.scene.freeze import frozen
-from neb_slam_core.slam import new_block_map
 from neb_slam_core.tracking.gauss_newton import (evaluate_pose, normal_equations, spatial_gradients,
                                                  spatial_gradients_autograd)
 from neb_slam_core.tracking.tracker import Tracker
-
-REPO = Path(__file__).resolve().parents[1]
-TUM = Path(os.environ.get("NEB_SLAM_SHARED_DATA", REPO.parent / "shared" / "data")) / "tum_fr1_xyz_300"
-
-
-def median_ms(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(1e3 * (time.perf_counter() - t0))
-    return float(np.median(times))
 
 
 def main() -> None:
@@ -64,22 +47,10 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
     args = p.parse_args()
-    if not TUM.is_dir():
-        sys.exit(f"{TUM} not found: this benchmark needs the TUM frames of ../shared/data")
     cfg = load_config("tum")
-    torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    rectify = Rectifier()
-    ds = open_dataset(TUM)
-    usable = [i for i in range(len(ds)) if ds[i].T_world_cam is not None]
-    fit = [rectify(ds[i]) for i in usable[:2 * args.fit_frames:2]]
-    tracked = [rectify(ds[i]) for i in usable[2 * args.fit_frames:2 * args.fit_frames + args.track_frames]]
+    block_map, tracked = fitted_tum_map(cfg, args.fit_frames, args.fit_iterations, args.track_frames, rng)
     s = cfg.render.sampling
-    block_map = new_block_map(cfg)
-    allocate_blocks(block_map, fit, [f.T_world_cam for f in fit], s.near_m, s.far_m, rng)
-    fit_map(block_map, FrameRayPool(fit, [f.T_world_cam for f in fit]), cfg.render,
-            FitConfig(iterations=args.fit_iterations, rays_per_iteration=cfg.mapping.n_rays), seed=cfg.seed,
-            progress=True)
 
     starts = [predicted_start(f.T_world_cam) for f in tracked]
 

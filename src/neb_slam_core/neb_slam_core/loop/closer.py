@@ -55,7 +55,7 @@ class LoopCloser:
         """Query for keyframe ``keyframe_id`` (already added; ``frame`` is it) with the current keyframe
         poses ``(K, 4, 4)``; returns the loop event (None: no loop) and, when applied, the corrected poses."""
         cfg = self.cfg
-        self._register(keyframe_id, poses, frame)
+        self.register(keyframe_id, poses, frame)
         query = self.detector.query(keyframe_id)
         detection = query.detection
         if detection is None:
@@ -85,8 +85,10 @@ class LoopCloser:
         corrected = propagate_correction(poses, min(ids), keyframe_id, fit.T_world_cam, self.registrations)
         return event(True), corrected
 
-    def _register(self, keyframe_id: int, poses: np.ndarray, frame: RgbdFrame) -> None:
-        """Registration edges from the ``register_neighbours`` keyframes added before ``keyframe_id``."""
+    def register(self, keyframe_id: int, poses: np.ndarray, frame: RgbdFrame) -> None:
+        """Registration edges into :attr:`registrations` from the ``register_neighbours`` keyframes added
+        before ``keyframe_id`` (added; ``frame`` is it), starting from the relative poses in ``poses``
+        (K, 4, 4). :meth:`close` does this first."""
         cfg = self.cfg
         order = list(self._views)
         position = order.index(int(keyframe_id))

@@ -33,6 +33,13 @@ def median_ms(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
+def load_figures() -> dict:
+    """The torch thread count and the 1-minute load average: what a timing was measured under."""
+    import torch
+
+    return {"threads": torch.get_num_threads(), "load_average": round(os.getloadavg()[0], 2)}
+
+
 def report(figures: dict, json_path: Path | None) -> None:
     """Print the figures as JSON, and write them to ``json_path`` when given."""
     text = json.dumps(figures, indent=2)

@@ -21,15 +21,13 @@ Example::
 from __future__ import annotations
 
 import argparse
-import os
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from common import fitted_tum_map, median_ms, predicted_start, report
+from common import fitted_tum_map, load_figures, median_ms, predicted_start, report
 from neb_slam_core.config_io import load_config
 from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.renderer import objective
@@ -78,12 +76,11 @@ def main() -> None:
     for f in frames:
         start = predicted_start(f.T_world_cam)
         for key, rc in render.items():
-            times = []
-            for _ in range(args.repeats):
-                t0 = time.perf_counter()
-                result = Tracker(cfg.tracking, rc, seed=cfg.seed).track(block_map, f, start)
-                times.append(1e3 * (time.perf_counter() - t0))
-            track_ms[key].append(float(np.median(times)))
+            results = []
+            track_ms[key].append(median_ms(
+                lambda rc=rc: results.append(Tracker(cfg.tracking, rc, seed=cfg.seed).track(block_map, f, start)),
+                args.repeats))
+            result = results[-1]
             steps[key].append(result.iterations)
             poses[key].append(result.T_world_cam)
             error_mm[key].append(1e3 * float(np.linalg.norm(result.T_world_cam[:3, 3] - f.T_world_cam[:3, 3])))
@@ -107,8 +104,7 @@ def main() -> None:
         "track_error_mm_all": [round(e, 2) for e in error_mm["all"]],
         "pose_gap_mm": [round(g, 3) for g in gap_mm],
         "mapping_rays": cfg.mapping.n_rays,
-        "threads": torch.get_num_threads(),
-        "load_average": round(os.getloadavg()[0], 2),
+        **load_figures(),
     }
     print(f"mapping step {figures['map_step_ms_skip']} ms skipping, {figures['map_step_ms_all']} ms with every "
           f"sample (x{figures['map_step_ratio']}); tracking {figures['track_ms_skip']} against "

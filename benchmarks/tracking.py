@@ -22,14 +22,13 @@ Example::
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from common import fitted_tum_map, median_ms, predicted_start, report
+from common import fitted_tum_map, load_figures, median_ms, predicted_start, report
 from neb_slam_core.config_io import load_config
 from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.sampling import sample_depths
@@ -90,8 +89,7 @@ def main() -> None:
         "track_steps": steps,
         "pose_gap_to_autograd_mm": [round(g, 3) for g in gaps],
         "n_rays": cfg.tracking.n_rays,
-        "threads": torch.get_num_threads(),
-        "load_average": round(os.getloadavg()[0], 2),
+        **load_figures(),
     }
     print(f"normal equations: {figures['normal_equations_ms_fd']} ms by forward differences, "
           f"{figures['normal_equations_ms_autograd']} ms by autograd (x{figures['normal_equations_ratio']}); "

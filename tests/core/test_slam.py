@@ -103,21 +103,59 @@ def test_a_frame_without_depth_is_a_tracking_failure_that_keeps_the_prediction(s
 
 
 def test_non_keyframe_poses_follow_corrections_of_their_keyframe(frames, full_run):
+    """Both keyframes around frame 7 (frames 5 and 10) moved by one rigid correction: the frame moves
+    with them exactly, and so does a keyframe's own frame."""
     slam = full_run[0]
-    i = 7  # keyframe 5 is its keyframe
+    i = 7
     k = slam.frontend.keyframe_of(i)
-    assert slam.keyframes[k].frame_index == 5
+    assert slam.keyframes[k].frame_index == 5 and slam.keyframes[k + 1].frame_index == 10
     poses = slam.keyframes.poses()
-    before = slam.pose_of(i)
+    before, before_kf = slam.pose_of(i), slam.pose_of(5)
     correction = np.eye(4)
     correction[:3, :3] = Rotation.from_euler("z", 3.0, degrees=True).as_matrix()
     correction[:3, 3] = [0.05, 0.0, -0.02]
     corrected = poses.copy()
-    corrected[k] = correction @ poses[k]
+    corrected[k:k + 2] = correction @ poses[k:k + 2]
     try:
         slam.set_keyframe_poses(corrected)
         np.testing.assert_allclose(slam.pose_of(i), correction @ before, atol=1e-12)
+        np.testing.assert_allclose(slam.pose_of(5), correction @ before_kf, atol=1e-12)
         np.testing.assert_allclose(slam.keyframes[k].T_world_cam, corrected[k], atol=0)
+    finally:
+        slam.set_keyframe_poses(poses)
+
+
+def test_non_keyframes_take_their_share_of_the_next_keyframes_correction(full_run):
+    """Frame 7 lies 2/5 of the way from keyframe frame 5 to keyframe frame 10. With the keyframes put
+    where tracking linked them (no drift between them), moving keyframe 10 by 2 cm and turning it by
+    5 degrees about its own centre moves frame 7 by 0.4 of that: 2 degrees, about its own position,
+    plus 0.4 of the displacement the correction gives that position. Frame 5 does not move; frame 12,
+    between keyframes 10 and 15 both so moved, moves rigidly with them."""
+    slam = full_run[0]
+    k = slam.frontend.keyframe_of(7)
+    poses = slam.keyframes.poses()
+    assert slam.frontend.keyframe_of(12) == k + 1 and slam.keyframes[k + 2].frame_index > 12
+    linked = poses.copy()
+    for j in (k + 1, k + 2):
+        linked[j] = linked[j - 1] @ slam.frontend._keyframe_links[j]
+    R = Rotation.from_euler("y", 5.0, degrees=True).as_matrix()
+    centre = linked[k + 1][:3, 3]
+    drift = np.eye(4)
+    drift[:3, :3] = R
+    drift[:3, 3] = centre - R @ centre + [0.0, 0.02, 0.0]
+    moved = linked.copy()
+    moved[k + 1:k + 3] = drift @ linked[k + 1:k + 3]
+    try:
+        slam.set_keyframe_poses(linked)
+        rigid7, rigid5, rigid12 = slam.pose_of(7), slam.pose_of(5), slam.pose_of(12)
+        slam.set_keyframe_poses(moved)
+        T7 = slam.pose_of(7)
+        p = rigid7[:3, 3]
+        np.testing.assert_allclose(T7[:3, 3], p + 0.4 * (drift[:3, :3] @ p + drift[:3, 3] - p), atol=1e-12)
+        turn = T7[:3, :3] @ rigid7[:3, :3].T
+        np.testing.assert_allclose(Rotation.from_matrix(turn).as_rotvec(), [0.0, np.radians(2.0), 0.0], atol=1e-12)
+        np.testing.assert_allclose(slam.pose_of(5), rigid5, atol=1e-12)
+        np.testing.assert_allclose(slam.pose_of(12), drift @ rigid12, atol=1e-12)
     finally:
         slam.set_keyframe_poses(poses)
 

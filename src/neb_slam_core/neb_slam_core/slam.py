@@ -18,7 +18,10 @@ backend is a :class:`FrontendStep` (a keyframe, its pose and whether to map now)
 the map's changed blocks, its decoders and the corrected keyframe poses (``scene/map_update.py``).
 
 Poses of non-keyframes are stored relative to the latest keyframe before them, so corrections of
-keyframe poses (by mapping or loop closure) move them too.
+keyframe poses (by mapping or loop closure) move them too. A frame between two keyframes also takes
+its share (by frame count) of the next keyframe's correction relative to the one before: when the
+joint optimisation or a loop's pose graph finds that tracking drifted between two keyframes, the
+frames tracked in between are moved along instead of keeping the drift.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ import torch
 from .config import SlamConfig
 from .geometry.rays import backproject_depth
 from .geometry.rectify import Rectifier
-from .geometry.se3 import invert, orthonormalize
+from .geometry.se3 import interpolate_correction, invert, orthonormalize
 from .io.trajectory import Trajectory
 from .loop.closer import LoopCloser
 from .mapping.keyframes import Keyframe, KeyframeStore
@@ -117,6 +120,9 @@ class Frontend:
         self.tracker = Tracker(cfg.tracking, cfg.render, seed=cfg.seed + 2)
         self.T_world_first = np.eye(4) if T_world_first is None else np.array(T_world_first, dtype=np.float64)
         self.keyframe_poses: list[np.ndarray] = []
+        # per keyframe: its frame index, and its pose relative to the keyframe before it as tracked
+        self._keyframe_frames: list[int] = []
+        self._keyframe_links: list[np.ndarray] = []
         self._frames: list[_FramePose] = []
         self._residuals: list[float] = []
         self._ok_streak = 0  # consecutive frames tracked (the first frame counts)
@@ -129,9 +135,18 @@ class Frontend:
         return len(self._frames)
 
     def pose_of(self, i: int) -> np.ndarray:
-        """Current (corrected) pose of processed frame ``i``."""
+        """Current (corrected) pose of processed frame ``i``: with its keyframe, plus its share of the
+        next keyframe's correction relative to its own (the module docstring)."""
         f = self._frames[i]
-        return self.keyframe_poses[f.keyframe_id] @ f.T_kf_cam
+        k = f.keyframe_id
+        T = self.keyframe_poses[k] @ f.T_kf_cam
+        if k + 1 < len(self.keyframe_poses):
+            first, last = self._keyframe_frames[k], self._keyframe_frames[k + 1]
+            share = (i - first) / (last - first)
+            # where the next keyframe is now, against where its tracked link puts it from this one
+            drift = self.keyframe_poses[k + 1] @ invert(self.keyframe_poses[k] @ self._keyframe_links[k + 1])
+            T = interpolate_correction(drift, T[:3, 3], share) @ T
+        return T
 
     def keyframe_of(self, i: int) -> int:
         """Id of the keyframe that frame ``i``'s pose is kept relative to."""
@@ -247,6 +262,9 @@ class Frontend:
         return alloc.block, alloc.tau
 
     def _add_keyframe(self, T: np.ndarray) -> int:
+        link = invert(self.keyframe_poses[-1]) @ T if self.keyframe_poses else np.eye(4)
+        self._keyframe_links.append(np.array(link, dtype=np.float64))
+        self._keyframe_frames.append(self.n_frames)
         self.keyframe_poses.append(np.array(T, dtype=np.float64))
         return len(self.keyframe_poses) - 1
 

@@ -5,9 +5,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neb_slam_core.geometry.se3 import invert, make_pose
-from neb_slam_core.loop.correction import (_shared_correction, correction_size, fit_loop_pose, interpolate_correction,
-                                           merge_correction, propagate_correction, reprojection_residuals,
-                                           sample_pixels, strided_view)
+from neb_slam_core.loop.correction import (_shared_correction, correction_size, fit_loop_pose, merge_correction,
+                                           propagate_correction, reprojection_residuals, sample_pixels,
+                                           strided_view)
 from neb_slam_core.types import Intrinsics
 
 K = Intrinsics(120.0, 120.0, 79.5, 59.5, 160, 120)
@@ -75,17 +75,6 @@ def test_strided_view_scales_the_camera():
     # full-resolution pixel (2i, 2j) is strided pixel (i, j): same depth, same ray
     assert v.depth_m[10, 20] == box_depth(T_R1)[20, 40]
     assert v.intrinsics.fx == 60.0 and v.intrinsics.cx == 79.5 / 2
-
-
-def test_interpolated_correction_ends():
-    delta = pose([10.0, 20.0, -5.0], [0.3, -0.2, 0.1])
-    pivot = np.array([1.0, 2.0, 3.0])
-    assert np.allclose(interpolate_correction(delta, pivot, 1.0), delta)
-    assert np.allclose(interpolate_correction(delta, pivot, 0.0), np.eye(4))
-    half = interpolate_correction(delta, pivot, 0.5)
-    # half the rotation angle, half the pivot's displacement
-    assert np.isclose(Rotation.from_matrix(half[:3, :3]).magnitude(), 0.5 * Rotation.from_matrix(delta[:3, :3]).magnitude())
-    assert np.allclose(half[:3, :3] @ pivot + half[:3, 3] - pivot, 0.5 * (delta[:3, :3] @ pivot + delta[:3, 3] - pivot))
 
 
 def test_propagation_undoes_a_uniform_turning_drift_exactly():

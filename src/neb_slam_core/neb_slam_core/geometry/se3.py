@@ -32,6 +32,15 @@ def invert(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def interpolate_correction(delta: np.ndarray, pivot: np.ndarray, w: float) -> np.ndarray:
+    """The share ``w`` in [0, 1] of the rigid correction ``delta`` (4x4): rotation ``exp(w log R)``
+    about ``pivot`` (3,) plus ``w`` times the displacement of ``pivot``. ``w = 1`` gives ``delta``."""
+    R = Rotation.from_matrix(delta[:3, :3])
+    R_w = Rotation.from_rotvec(w * R.as_rotvec()).as_matrix()
+    displacement = delta[:3, :3] @ pivot + delta[:3, 3] - pivot
+    return make_pose(R_w, pivot - R_w @ pivot + w * displacement)
+
+
 def pose_from_tum(txyz_qxyzw: np.ndarray) -> np.ndarray:
     """``(..., 7)`` rows ``tx ty tz qx qy qz qw`` -> ``(..., 4, 4)`` poses."""
     v = np.asarray(txyz_qxyzw, dtype=np.float64)

@@ -57,7 +57,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ..geometry.se3 import invert, make_pose
+from ..geometry.se3 import interpolate_correction, invert, make_pose
 from ..types import Intrinsics
 
 
@@ -213,15 +213,6 @@ def fit_loop_pose(T_world_init: np.ndarray, pixels: np.ndarray, depths: np.ndarr
     T = pose(x)
     rms_end, n_valid, _ = rms(T)
     return PoseFit(T, rms_start, rms_end, n_valid, len(pixels))
-
-
-def interpolate_correction(delta: np.ndarray, pivot: np.ndarray, w: float) -> np.ndarray:
-    """The share ``w`` in [0, 1] of the rigid correction ``delta`` (4x4): rotation ``exp(w log R)``
-    about ``pivot`` (3,) plus ``w`` times the displacement of ``pivot``. ``w = 1`` gives ``delta``."""
-    R = Rotation.from_matrix(delta[:3, :3])
-    R_w = Rotation.from_rotvec(w * R.as_rotvec()).as_matrix()
-    displacement = delta[:3, :3] @ pivot + delta[:3, 3] - pivot
-    return make_pose(R_w, pivot - R_w @ pivot + w * displacement)
 
 
 #: rotation errors count as the arc length they sweep at this distance (metres per radian)

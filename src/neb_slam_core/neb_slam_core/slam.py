@@ -78,6 +78,52 @@ def load_map_for(cfg: SlamConfig, path) -> BlockMap:
     return block_map
 
 
+def frame_pose(T_world_kf: np.ndarray, T_kf_cam: np.ndarray, share: float = 0.0,
+               T_world_next: np.ndarray | None = None, T_kf_next: np.ndarray | None = None) -> np.ndarray:
+    """The pose of a frame kept relative to its keyframe (``T_kf_cam``), the keyframe now at ``T_world_kf``.
+
+    With the next keyframe (now at ``T_world_next``; ``T_kf_next``: where tracking linked it from this
+    keyframe) the frame also takes ``share`` (its place between the two, 0..1) of the next keyframe's
+    move away from that link, turned about the frame's own position: the rule of the module docstring.
+    """
+    T = T_world_kf @ T_kf_cam
+    if T_world_next is None or share <= 0.0:
+        return T
+    drift = T_world_next @ invert(T_world_kf @ T_kf_next)
+    return interpolate_correction(drift, T[:3, 3], share) @ T
+
+
+def corrected_trajectory(stamps_ns: np.ndarray, poses: np.ndarray, keyframe_stamps_ns: np.ndarray,
+                         keyframe_poses: np.ndarray) -> Trajectory:
+    """A trajectory computed with earlier keyframe poses, after the keyframes moved to ``keyframe_poses``
+    ``(K, 4, 4)`` (the keyframes are the frames with stamps ``keyframe_stamps_ns``, increasing): every
+    frame follows the latest keyframe at or before it by :func:`frame_pose`, its place between that
+    keyframe and the next counted in rows, the link between them read off ``poses`` as well. Frames
+    before the first keyframe, or whose keyframe is not in the trajectory, keep their pose. What a
+    process that only sees the trajectory (the ROS mapper, a benchmark on a run's output) can compute of
+    :meth:`Frontend.pose_of`; the same when the keyframes have not moved since ``poses`` were computed."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    poses = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
+    keyframe_poses = np.asarray(keyframe_poses, dtype=np.float64)
+    row_of = {int(s): i for i, s in enumerate(stamps)}
+    kf_stamps = np.asarray(keyframe_stamps_ns, dtype=np.int64)
+    kf_rows = [row_of.get(int(s)) for s in kf_stamps]
+    owner = np.searchsorted(kf_stamps, stamps, side="right") - 1
+    out = poses.copy()
+    for i, k in enumerate(owner):
+        if k < 0 or kf_rows[k] is None:
+            continue
+        T_kf_then = poses[kf_rows[k]]
+        T_kf_cam = invert(T_kf_then) @ poses[i]
+        nxt = kf_rows[k + 1] if k + 1 < len(kf_rows) else None
+        if nxt is None:
+            out[i] = frame_pose(keyframe_poses[k], T_kf_cam)
+        else:
+            out[i] = frame_pose(keyframe_poses[k], T_kf_cam, (i - kf_rows[k]) / (nxt - kf_rows[k]),
+                                keyframe_poses[k + 1], invert(T_kf_then) @ poses[nxt])
+    return Trajectory(stamps, out)
+
+
 @dataclass
 class _FramePose:
     """A processed frame's pose: relative to keyframe ``keyframe_id`` (``T_kf_cam``)."""
@@ -139,14 +185,11 @@ class Frontend:
         next keyframe's correction relative to its own (the module docstring)."""
         f = self._frames[i]
         k = f.keyframe_id
-        T = self.keyframe_poses[k] @ f.T_kf_cam
-        if k + 1 < len(self.keyframe_poses):
-            first, last = self._keyframe_frames[k], self._keyframe_frames[k + 1]
-            share = (i - first) / (last - first)
-            # where the next keyframe is now, against where its tracked link puts it from this one
-            drift = self.keyframe_poses[k + 1] @ invert(self.keyframe_poses[k] @ self._keyframe_links[k + 1])
-            T = interpolate_correction(drift, T[:3, 3], share) @ T
-        return T
+        if k + 1 == len(self.keyframe_poses):
+            return frame_pose(self.keyframe_poses[k], f.T_kf_cam)
+        first, last = self._keyframe_frames[k], self._keyframe_frames[k + 1]
+        return frame_pose(self.keyframe_poses[k], f.T_kf_cam, (i - first) / (last - first),
+                          self.keyframe_poses[k + 1], self._keyframe_links[k + 1])
 
     def keyframe_of(self, i: int) -> int:
         """Id of the keyframe that frame ``i``'s pose is kept relative to."""

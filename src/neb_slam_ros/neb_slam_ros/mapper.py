@@ -38,13 +38,12 @@ from std_msgs.msg import UInt8MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from neb_slam_core.geometry.se3 import interpolate_correction, invert
 from neb_slam_core.loop.correction import merge_correction
 from neb_slam_core.io.run_dir import MAP_FILE, TRAJECTORY_FILE, RunDirectory
 from neb_slam_core.io.trajectory import Trajectory
 from neb_slam_core.scene import map_update
 from neb_slam_core.scene.persistence import save_map
-from neb_slam_core.slam import Backend, new_block_map
+from neb_slam_core.slam import Backend, corrected_trajectory, new_block_map
 from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import WorkerNode, final_log, run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
@@ -71,39 +70,6 @@ class MapperOptions:
     def check(self) -> None:
         require(self.mesh_period_s >= 0, "mesh_period_s", ">= 0", self.mesh_period_s)
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
-
-
-def corrected_trajectory(path_stamps_ns: np.ndarray, path_poses: np.ndarray, keyframe_stamps_ns: np.ndarray,
-                         keyframe_poses: np.ndarray) -> Trajectory:
-    """Every frame of a tracker's path moved with the current pose of its keyframe, plus its share of
-    the next keyframe's change relative to it, as the engine's ``Frontend.pose_of`` does.
-
-    The tracker keeps each frame relative to the latest keyframe at or before it, and a keyframe's own
-    entry in the path is that keyframe's pose as the tracker knew it, so ``T_kf_cam`` is read off the same
-    path: ``T = T_world_kf(now) @ inv(T_world_kf(path)) @ T_world_cam(path)``. Where keyframe k+1 has moved
-    relative to keyframe k since the path was published, a frame between them takes the share of that
-    move given by its place between their rows. Frames before the first keyframe, or whose keyframe is
-    missing from the path, keep their path pose.
-    """
-    stamps = np.asarray(path_stamps_ns, dtype=np.int64)
-    poses = np.array(path_poses, dtype=np.float64).reshape(-1, 4, 4)
-    keyframe_poses = np.asarray(keyframe_poses, dtype=np.float64)
-    out = poses.copy()
-    row_of = {int(s): i for i, s in enumerate(stamps)}
-    kf_stamps = np.asarray(keyframe_stamps_ns, dtype=np.int64)
-    kf_rows = [row_of.get(int(s)) for s in kf_stamps]
-    owner = np.searchsorted(kf_stamps, stamps, side="right") - 1
-    for i, k in enumerate(owner):
-        if k < 0 or kf_rows[k] is None:
-            continue
-        T_world_kf_then = poses[kf_rows[k]]
-        out[i] = keyframe_poses[k] @ invert(T_world_kf_then) @ poses[i]
-        if k + 1 < len(kf_rows) and kf_rows[k + 1] is not None and i > kf_rows[k]:
-            link = invert(T_world_kf_then) @ poses[kf_rows[k + 1]]
-            drift = keyframe_poses[k + 1] @ invert(keyframe_poses[k] @ link)
-            share = (i - kf_rows[k]) / (kf_rows[k + 1] - kf_rows[k])
-            out[i] = interpolate_correction(drift, out[i][:3, 3], share) @ out[i]
-    return Trajectory(stamps, out)
 
 
 def split_by_block(mesh, block_map) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -4,8 +4,8 @@
 The scene is the ``default`` synthetic preset (160x120, 300 frames, the route returns to its start;
 generated once under ``.cache/scenes/``), with ``--noise`` the Kinect-like depth noise model. The two
 runs differ in ``loop.enabled`` only (same config, same seed). Extra arguments after ``--`` go to both
-runs (e.g. ``-- --seed 1`` for another realisation of the noise, ``-- --set tracking.iterations=4`` to
-make tracking drift more).
+runs (e.g. ``-- --seed 1`` for another realisation of the drift: the engine's random draws differ,
+the scene stays; ``-- --set tracking.iterations=4`` to make tracking drift more).
 
 Figures (JSON keys): ``ate_cm_with``, ``ate_cm_without``, ``ate_ratio`` (with / without; target at most
 0.7), ``acc_cm_with``, ``acc_cm_without`` (accuracy of the mesh against the scene's, culled to the

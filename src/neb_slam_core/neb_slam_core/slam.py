@@ -78,19 +78,21 @@ def load_map_for(cfg: SlamConfig, path) -> BlockMap:
     return block_map
 
 
-def frame_pose(T_world_kf: np.ndarray, T_kf_cam: np.ndarray, share: float = 0.0,
+def frame_pose(T_world_kf: np.ndarray, T_kf_cam: np.ndarray, share=0.0,
                T_world_next: np.ndarray | None = None, T_kf_next: np.ndarray | None = None) -> np.ndarray:
     """The pose of a frame kept relative to its keyframe (``T_kf_cam``), the keyframe now at ``T_world_kf``.
 
     With the next keyframe (now at ``T_world_next``; ``T_kf_next``: where tracking linked it from this
     keyframe) the frame also takes ``share`` (its place between the two, 0..1) of the next keyframe's
     move away from that link, turned about the frame's own position: the rule of the module docstring.
+    Batched over leading axes (a frame with no next keyframe: ``T_world_next = T_world_kf``,
+    ``T_kf_next`` identity, share 0).
     """
     T = T_world_kf @ T_kf_cam
-    if T_world_next is None or share <= 0.0:
+    if T_world_next is None:
         return T
     drift = T_world_next @ invert(T_world_kf @ T_kf_next)
-    return interpolate_correction(drift, T[:3, 3], share) @ T
+    return interpolate_correction(drift, T[..., :3, 3], share) @ T
 
 
 def corrected_trajectory(stamps_ns: np.ndarray, poses: np.ndarray, keyframe_stamps_ns: np.ndarray,
@@ -104,23 +106,25 @@ def corrected_trajectory(stamps_ns: np.ndarray, poses: np.ndarray, keyframe_stam
     :meth:`Frontend.pose_of`; the same when the keyframes have not moved since ``poses`` were computed."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     poses = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
-    keyframe_poses = np.asarray(keyframe_poses, dtype=np.float64)
-    row_of = {int(s): i for i, s in enumerate(stamps)}
+    keyframe_poses = np.asarray(keyframe_poses, dtype=np.float64).reshape(-1, 4, 4)
     kf_stamps = np.asarray(keyframe_stamps_ns, dtype=np.int64)
-    kf_rows = [row_of.get(int(s)) for s in kf_stamps]
+    row_of = {int(s): i for i, s in enumerate(stamps)}
+    kf_rows = np.array([row_of.get(int(s), -1) for s in kf_stamps], dtype=np.int64)
     owner = np.searchsorted(kf_stamps, stamps, side="right") - 1
+    moved = np.flatnonzero((owner >= 0) & (kf_rows[np.maximum(owner, 0)] >= 0))
     out = poses.copy()
-    for i, k in enumerate(owner):
-        if k < 0 or kf_rows[k] is None:
-            continue
-        T_kf_then = poses[kf_rows[k]]
-        T_kf_cam = invert(T_kf_then) @ poses[i]
-        nxt = kf_rows[k + 1] if k + 1 < len(kf_rows) else None
-        if nxt is None:
-            out[i] = frame_pose(keyframe_poses[k], T_kf_cam)
-        else:
-            out[i] = frame_pose(keyframe_poses[k], T_kf_cam, (i - kf_rows[k]) / (nxt - kf_rows[k]),
-                                keyframe_poses[k + 1], invert(T_kf_then) @ poses[nxt])
+    if len(moved) == 0:
+        return Trajectory(stamps, out)
+    k = owner[moved]
+    first = kf_rows[k]
+    nxt = np.append(kf_rows, -1)[k + 1]
+    has_next = nxt >= 0
+    T_kf_then_inv = invert(poses[first])
+    T_world_kf = keyframe_poses[k]
+    T_world_next = np.where(has_next[:, None, None], keyframe_poses[np.minimum(k + 1, len(kf_rows) - 1)], T_world_kf)
+    T_kf_next = np.where(has_next[:, None, None], T_kf_then_inv @ poses[np.maximum(nxt, 0)], np.eye(4))
+    share = np.where(has_next, (moved - first) / np.where(has_next, nxt - first, 1), 0.0)
+    out[moved] = frame_pose(T_world_kf, T_kf_then_inv @ poses[moved], share, T_world_next, T_kf_next)
     return Trajectory(stamps, out)
 
 
@@ -196,11 +200,19 @@ class Frontend:
         return self._frames[i].keyframe_id
 
     def trajectory(self) -> Trajectory:
-        """Corrected poses of every processed frame."""
+        """Corrected poses of every processed frame (:meth:`pose_of` of all, in one batch: the ROS
+        tracker publishes this after every frame)."""
         if not self._frames:
             return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
-        return Trajectory(np.array([f.stamp_ns for f in self._frames]),
-                          np.stack([self.pose_of(i) for i in range(self.n_frames)]))
+        k = np.array([f.keyframe_id for f in self._frames])
+        kf_poses = np.stack(self.keyframe_poses)
+        links = np.stack(self._keyframe_links + [np.eye(4)])          # the last keyframe has no next one
+        kf_frames = np.array(self._keyframe_frames + [0])
+        has_next = k + 1 < len(kf_poses)
+        share = np.where(has_next, (np.arange(len(k)) - kf_frames[k]) / np.where(has_next, kf_frames[k + 1] - kf_frames[k], 1), 0.0)
+        T_world_next = np.where(has_next[:, None, None], kf_poses[np.minimum(k + 1, len(kf_poses) - 1)], kf_poses[k])
+        poses = frame_pose(kf_poses[k], np.stack([f.T_kf_cam for f in self._frames]), share, T_world_next, links[k + 1])
+        return Trajectory(np.array([f.stamp_ns for f in self._frames]), poses)
 
     def set_keyframe_poses(self, poses: np.ndarray) -> None:
         """Corrected poses ``(K, 4, 4)`` of the first K keyframes (from mapping or loop closure)."""

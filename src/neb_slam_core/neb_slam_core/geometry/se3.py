@@ -32,13 +32,22 @@ def invert(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def interpolate_correction(delta: np.ndarray, pivot: np.ndarray, w: float) -> np.ndarray:
+def interpolate_correction(delta: np.ndarray, pivot: np.ndarray, w) -> np.ndarray:
     """The share ``w`` in [0, 1] of the rigid correction ``delta`` (4x4): rotation ``exp(w log R)``
-    about ``pivot`` (3,) plus ``w`` times the displacement of ``pivot``. ``w = 1`` gives ``delta``."""
-    R = Rotation.from_matrix(delta[:3, :3])
-    R_w = Rotation.from_rotvec(w * R.as_rotvec()).as_matrix()
-    displacement = delta[:3, :3] @ pivot + delta[:3, 3] - pivot
-    return make_pose(R_w, pivot - R_w @ pivot + w * displacement)
+    about ``pivot`` (3,) plus ``w`` times the displacement of ``pivot``. ``w = 1`` gives ``delta``.
+    Batched over leading axes: ``delta`` (..., 4, 4), ``pivot`` (..., 3) and ``w`` (...) broadcast."""
+    delta, pivot, w = np.asarray(delta, dtype=np.float64), np.asarray(pivot, dtype=np.float64), np.asarray(w, dtype=np.float64)
+    shape = np.broadcast_shapes(delta.shape[:-2], pivot.shape[:-1], w.shape)
+    delta = np.broadcast_to(delta, shape + (4, 4)).reshape(-1, 4, 4)
+    pivot = np.broadcast_to(pivot, shape + (3,)).reshape(-1, 3)
+    w = np.broadcast_to(w, shape).reshape(-1)
+    R_w = Rotation.from_rotvec(w[:, None] * Rotation.from_matrix(delta[:, :3, :3]).as_rotvec()).as_matrix()
+    displacement = (delta[:, :3, :3] @ pivot[:, :, None])[..., 0] + delta[:, :3, 3] - pivot
+    out = np.zeros((len(w), 4, 4))
+    out[:, :3, :3] = R_w
+    out[:, :3, 3] = pivot - (R_w @ pivot[:, :, None])[..., 0] + w[:, None] * displacement
+    out[:, 3, 3] = 1.0
+    return out.reshape(shape + (4, 4))
 
 
 def pose_from_tum(txyz_qxyzw: np.ndarray) -> np.ndarray:

@@ -135,3 +135,80 @@ def test_features_blend_continuously_across_a_face_inside_another_block():
     plain = BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID, blend_m=0.0), grid_backend="reference", seed=3)
     pa, pb = plain.add_block([0.0, 0.0, 0.0]), plain.add_block([3.0, 0.0, 0.0])
     assert torch.allclose(plain.grid_features(p)[0], 0.5 * (pa.grid(pa.to_local(p)) + pb.grid(pb.to_local(p))), atol=1e-6)
+
+
+def _fast_map(blend_m: float, dtype=torch.float32) -> BlockMap:
+    """Three overlapping blocks on the C++ path, with table values large enough to show errors."""
+    from neb_slam_core.scene import hash_grid as hg
+
+    reason = hg.fast_path_unavailable_reason()
+    if reason is not None:  # the fast path is part of the product: a failed build fails, never skips
+        raise AssertionError(f"the hash-grid C++ extension did not build: {reason}")
+    m = BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID, blend_m=blend_m), grid_backend="fast", seed=3)
+    for centre in ([0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [1.5, 2.0, -1.0]):
+        m.add_block(centre)
+    m = m.to(dtype)
+    gen = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        for b in m.blocks:
+            b.grid.table.copy_(torch.rand(b.grid.table.shape, generator=gen, dtype=dtype) * 2 - 1)
+    return m
+
+
+def _points(n: int, dtype=torch.float32) -> torch.Tensor:
+    """Points over the three blocks and around them: one block, two, three, none, and exactly on faces."""
+    gen = torch.Generator().manual_seed(7)
+    p = (torch.rand(n, 3, generator=gen, dtype=torch.float64) * torch.tensor([10.0, 9.0, 8.0])
+         - torch.tensor([3.5, 3.5, 4.5]))
+    faces = torch.tensor([[2.5, 0.3, 0.1], [0.5, -1.0, 0.2], [3.0, 4.5, -1.0], [-2.5, -2.5, -2.5], [5.5, 0.0, 0.0]],
+                         dtype=torch.float64)
+    return torch.cat([p, faces]).to(dtype)
+
+
+def test_blended_features_by_the_kernel_equal_the_torch_sum():
+    # The kernel (no gradient wanted) against the torch path of the same map (taken when a gradient is
+    # wanted), which the tests above check by hand: the same features wherever the blocks overlap.
+    for blend_m, dtype, tol in ((0.5, torch.float32, 1e-6), (0.0, torch.float32, 1e-6), (0.5, torch.float64, 1e-12)):
+        m = _fast_map(blend_m, dtype)
+        p = _points(4000, dtype)
+        ids = [0, 1, 2]
+        with torch.no_grad():
+            feats, valid = m.grid_features(p, ids)
+        q = p.clone().requires_grad_(True)
+        ref, ref_valid = m.grid_features(q, ids)  # grad mode on, points need a gradient: the torch path
+        assert ref.requires_grad and not feats.requires_grad  # the two calls took different paths
+        inside = m.contains(p, ids)
+        counts = inside.sum(dim=1)
+        assert {0, 1, 2, 3} <= set(counts.tolist())  # the points cover no block, one, two and all three
+        assert torch.equal(valid, ref_valid) and torch.equal(valid, counts > 0)
+        torch.testing.assert_close(feats, ref.detach(), rtol=0, atol=tol)
+        assert torch.equal(feats[~valid], torch.zeros_like(feats[~valid]))
+        # a subset of the blocks, in another order: the same as the torch path on that subset
+        with torch.no_grad():
+            sub, _ = m.grid_features(p, [2, 0])
+        torch.testing.assert_close(sub, m.grid_features(q, [2, 0])[0].detach(), rtol=0, atol=tol)
+
+
+def test_the_kernel_is_not_used_when_a_gradient_is_wanted():
+    from neb_slam_core.scene.freeze import frozen
+    from neb_slam_core.scene.hash_grid import encode_blended
+
+    m = _fast_map(0.5)
+    p = _points(100)
+    grids = [b.grid for b in m.blocks]
+
+    def kernel_runs(points):
+        return encode_blended(points, m.centres(), grids, 5.0, 0.5) is not None
+
+    assert not kernel_runs(p)  # grad mode on and the tables train (mapping)
+    with torch.no_grad():
+        assert kernel_runs(p)  # rendering for evaluation, meshing
+    with frozen(m):
+        assert kernel_runs(p)  # tracking: the map is frozen and the points need no gradient
+        assert not kernel_runs(p.clone().requires_grad_(True))  # autograd spatial gradients
+    with torch.no_grad():
+        assert encode_blended(p, m.centres(), [make_map().add_block([0.0, 0.0, 0.0]).grid], 5.0, 0.5) is None
+    # mapping: gradients reach every block through the torch path
+    feats, _ = m.grid_features(p)
+    feats.sum().backward()
+    assert all(b.grid.table.grad is not None and b.grid.table.grad.abs().sum() > 0 for b in m.blocks)

@@ -18,6 +18,7 @@ from ..config import BlockConfig, DecoderConfig, OneBlobConfig
 from ..types import Intrinsics
 from .block import NeuralBlock
 from .decoders import Decoders
+from .hash_grid import encode_blended
 from .one_blob import OneBlob
 
 
@@ -87,11 +88,16 @@ class BlockMap(nn.Module):
     def contains(self, points_world: torch.Tensor, block_ids: list[int] | None = None) -> torch.Tensor:
         """``(N, M)`` bool: point n lies in block ``block_ids[m]`` (all blocks when None)."""
         ids = range(len(self.blocks)) if block_ids is None else block_ids
-        if not len(ids):
-            return torch.zeros(points_world.shape[0], 0, dtype=torch.bool, device=points_world.device)
-        centres = self.centres()[list(ids)].to(points_world.dtype)
+        return self._face_distance(points_world, list(ids)) >= 0
+
+    def _face_distance(self, points_world: torch.Tensor, ids: list[int]) -> torch.Tensor:
+        """``(N, M)`` distance from each point to the nearest face of block ``ids[m]``, negative outside
+        (half the edge minus the Chebyshev distance to the centre): containment and blend weights in one."""
+        if not ids:
+            return points_world.new_zeros(points_world.shape[0], 0)
+        centres = self.centres()[ids].to(points_world.dtype)
         half = 0.5 * self.block_cfg.edge_m
-        return ((points_world[:, None, :] - centres[None]).abs() <= half).all(dim=-1)
+        return half - (points_world[:, None, :] - centres[None]).abs().amax(dim=-1)
 
     def blocks_in_frustum(self, T_world_cam: np.ndarray, intrinsics: Intrinsics, near_m: float,
                           far_m: float) -> list[int]:
@@ -142,7 +148,14 @@ class BlockMap(nn.Module):
         ids = list(range(len(self.blocks))) if block_ids is None else list(block_ids)
         n = points_world.shape[0]
         dim = self.block_cfg.grid.n_output_dims
-        inside = self.contains(points_world, ids)  # (N, M)
+        if len(ids) > 1:
+            # without gradients, the C++ kernel does the whole blend in one pass (same sum as below)
+            blended = encode_blended(points_world, self.centres()[ids], [self.blocks[i].grid for i in ids],
+                                     self.block_cfg.edge_m, self.block_cfg.blend_m)
+            if blended is not None:
+                return blended
+        to_face = self._face_distance(points_world, ids)  # (N, M)
+        inside = to_face >= 0
         valid = inside.any(dim=1)
         if len(ids) == 1:
             # the common case (one block in view): no gather/scatter; points outside are clamped by
@@ -152,28 +165,31 @@ class BlockMap(nn.Module):
             return feats * valid[:, None].to(feats.dtype), valid
         feats = points_world.new_zeros(n, dim)
         weight_sum = points_world.new_zeros(n)
-        for m, block_id in enumerate(ids):
-            idx = inside[:, m].nonzero(as_tuple=True)[0]
-            if idx.numel() == 0:
-                continue
-            block = self.blocks[block_id]
-            p = points_world[idx]
-            w = self._blend_weight(block, p)
-            # in place: an out-of-place index_add copies the whole (N, L*F) tensor once per block
-            feats.index_add_(0, idx, block.grid(block.to_local(p)).to(feats.dtype) * w[:, None])
-            weight_sum.index_add_(0, idx, w)
+        # All (point, block) pairs at once, grouped by block: one gather, one blend and one scatter for
+        # every block in view rather than one per block (their fixed cost is what a view seeing several
+        # blocks paid over a view seeing one); only the encoding itself runs per block, on its slice.
+        block_of, point_of = inside.T.nonzero(as_tuple=True)
+        if point_of.numel() == 0:
+            return feats, valid
+        counts = inside.sum(dim=0).tolist()
+        centres = self.centres()[ids].to(points_world.dtype)
+        local = (points_world[point_of] - centres[block_of]) / self.block_cfg.edge_m + 0.5
+        encoded = torch.cat([self.blocks[block_id].grid(chunk)
+                             for block_id, chunk in zip(ids, local.split(counts)) if chunk.shape[0]])
+        w = self._blend_weight(to_face[point_of, block_of])
+        # in place: an out-of-place index_add copies the whole (N, L*F) tensor
+        feats.index_add_(0, point_of, encoded.to(feats.dtype) * w[:, None])
+        weight_sum.index_add_(0, point_of, w)
         feats = feats / weight_sum.clamp(min=1e-12)[:, None]
         return feats, valid
 
-    def _blend_weight(self, block, points_world: torch.Tensor) -> torch.Tensor:
-        """``(N,)`` window weight of ``block`` at points inside it: 1 deeper than ``blend_m`` from every face,
-        falling linearly to a tiny positive value at the faces (never exactly 0, so a point inside a
-        single block keeps its features)."""
+    def _blend_weight(self, to_face: torch.Tensor) -> torch.Tensor:
+        """Window weight of a block at points inside it, from their distance ``to_face`` to its nearest
+        face: 1 deeper than ``blend_m``, falling linearly to a tiny positive value at the faces (never
+        exactly 0, so a point inside a single block keeps its features)."""
         blend = self.block_cfg.blend_m
         if blend <= 0:
-            return points_world.new_ones(points_world.shape[0])
-        half = 0.5 * self.block_cfg.edge_m
-        to_face = half - (points_world - block.centre.to(points_world.dtype)).abs().amax(dim=-1)
+            return torch.ones_like(to_face)
         return (to_face / blend).clamp(min=1e-6, max=1.0)
 
     def query(self, points_world: torch.Tensor, block_ids: list[int] | None = None,

@@ -205,6 +205,18 @@ def _ptr(t: Tensor | None) -> int:
     return 0 if t is None else t.data_ptr()
 
 
+def _check_layout(table: Tensor, offsets: Tensor, resolutions: Tensor, dense: Tensor, x_dtype: torch.dtype) -> None:
+    """The kernels trust the level buffers (raw pointers): they must match the table exactly."""
+    n_levels = resolutions.numel()
+    if not (offsets.dtype == resolutions.dtype == torch.int64 and dense.dtype == torch.bool
+            and offsets.is_contiguous() and resolutions.is_contiguous() and dense.is_contiguous()
+            and offsets.device.type == resolutions.device.type == dense.device.type == "cpu"
+            and offsets.numel() == n_levels + 1 and dense.numel() == n_levels
+            and int(offsets[-1]) == table.shape[0] and x_dtype == table.dtype):
+        raise ValueError("hash grid fast path: level buffers do not match the table "
+                         f"({table.shape[0]} rows, {table.dtype}; points {x_dtype})")
+
+
 class _FastHashEncode(torch.autograd.Function):
     """The C++ kernels as an autograd op: gradients w.r.t. the points and the table, each only when needed.
 
@@ -220,14 +232,7 @@ class _FastHashEncode(torch.autograd.Function):
         table_c = table.detach().contiguous()
         n, n_features = x01.shape[0], table_c.shape[1]
         n_levels = resolutions.numel()
-        # The kernels trust these (raw pointers): the layout must match the table exactly.
-        if not (offsets.dtype == resolutions.dtype == torch.int64 and dense.dtype == torch.bool
-                and offsets.is_contiguous() and resolutions.is_contiguous() and dense.is_contiguous()
-                and offsets.device.type == resolutions.device.type == dense.device.type == "cpu"
-                and offsets.numel() == n_levels + 1 and dense.numel() == n_levels
-                and int(offsets[-1]) == table_c.shape[0] and x01.dtype == table_c.dtype):
-            raise ValueError("hash grid fast path: level buffers do not match the table "
-                             f"({table_c.shape[0]} rows, {table_c.dtype}; points {x01.dtype})")
+        _check_layout(table_c, offsets, resolutions, dense, x01.dtype)
         out = torch.empty(n, n_levels * n_features, dtype=x01.dtype)
         ext.forward(_DTYPE_CODES[x01.dtype], n_features, _ptr(x01), _ptr(table_c), _ptr(out), n, n_levels,
                     _ptr(offsets), _ptr(resolutions), _ptr(dense), table_size, torch.get_num_threads())
@@ -250,6 +255,43 @@ class _FastHashEncode(torch.autograd.Function):
                      _ptr(grad_table), x01.shape[0], resolutions.numel(), _ptr(offsets), _ptr(resolutions),
                      _ptr(dense), ctx.table_size, torch.get_num_threads())
         return grad_x, grad_table, None, None, None, None
+
+
+def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"], edge_m: float,
+                   blend_m: float) -> tuple[Tensor, Tensor] | None:
+    """Hash features of world points blended over several blocks, by the C++ kernel, without gradients.
+
+    Block ``b`` is the cube of edge ``edge_m`` centred at ``centres[b]`` with the grid ``grids[b]``; a point
+    takes the mean of the features of the blocks containing it, weighted by the blend window
+    (:meth:`~neb_slam_core.scene.block_map.BlockMap.grid_features` defines it and runs the same sum in torch).
+
+    Returns:
+        ``(N, L*F)`` features and ``(N,)`` bool validity, or None when this path does not apply: a gradient
+        is wanted (grad mode on and the points or a table require one), a grid runs the reference backend,
+        the tensors are not on the CPU, or the grids' layouts differ. The caller then uses the torch path.
+    """
+    if not grids:
+        return None
+    x = points_world.reshape(-1, 3)
+    if torch.is_grad_enabled() and (x.requires_grad or any(g.table.requires_grad for g in grids)):
+        return None
+    meta = grids[0].meta
+    if any(g.meta != meta for g in grids) or not all(g.uses_fast_path(x) for g in grids):
+        return None
+    ext = _ext.load_hash_grid_ext()
+    x = x.detach().contiguous()
+    c = centres.detach().to(x.dtype).contiguous().reshape(-1, 3)
+    tables = [g.table.detach().contiguous() for g in grids]  # kept alive here: the kernel reads raw pointers
+    g0 = grids[0]
+    for t in tables:
+        _check_layout(t, g0.level_offsets, g0.level_resolutions, g0.level_is_dense, x.dtype)
+    out = torch.empty(x.shape[0], meta.n_output_dims, dtype=x.dtype)
+    valid = torch.empty(x.shape[0], dtype=torch.bool)
+    ext.forward_blocks(_DTYPE_CODES[x.dtype], meta.n_features, _ptr(x), _ptr(c), [_ptr(t) for t in tables],
+                       float(edge_m), float(blend_m), _ptr(out), _ptr(valid), x.shape[0], meta.n_levels,
+                       _ptr(g0.level_offsets), _ptr(g0.level_resolutions), _ptr(g0.level_is_dense),
+                       meta.table_size, torch.get_num_threads())
+    return out, valid
 
 
 def fast_path_unavailable_reason() -> str | None:

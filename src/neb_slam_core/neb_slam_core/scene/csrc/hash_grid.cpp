@@ -8,6 +8,7 @@
 // calling in. The GIL is released while a kernel runs.
 
 #include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
 
 #include <cstdint>
 #include <stdexcept>
@@ -115,11 +116,36 @@ void backward(int dtype, int64_t F, uintptr_t grad_out, uintptr_t x, uintptr_t t
   }
 }
 
+template <typename T, int F>
+void forward_blocks_typed(uintptr_t xw, uintptr_t centres, const std::vector<uintptr_t>& tables, double edge,
+                          double blend, uintptr_t out, uintptr_t valid, int64_t n, const std::vector<Level>& levels,
+                          int n_threads) {
+  std::vector<const T*> tabs;
+  for (uintptr_t t : tables) tabs.push_back(as_ptr<const T>(t));
+  neb_hash_grid::forward_blocks<T, F>(as_ptr<const T>(xw), as_ptr<const T>(centres), tabs, static_cast<T>(edge),
+                                      static_cast<T>(blend), as_ptr<T>(out), as_ptr<uint8_t>(valid), n, levels,
+                                      n_threads);
+}
+
+// xw (n, 3) world points, centres (M, 3), tables: M addresses of (E, F) tables with one level layout,
+// out (n, L*F), valid (n) bytes: all contiguous, same dtype, allocated by the caller.
+void forward_blocks(int dtype, int64_t F, uintptr_t xw, uintptr_t centres, const std::vector<uintptr_t>& tables,
+                    double edge, double blend, uintptr_t out, uintptr_t valid, int64_t n, int64_t n_levels,
+                    uintptr_t offsets, uintptr_t resolutions, uintptr_t dense, int64_t table_size, int n_threads) {
+  const auto levels = make_levels(n_levels, offsets, resolutions, dense, table_size);
+  if (!(edge > 0)) throw std::invalid_argument("hash_grid: block edge must be positive");
+  if (n <= 0) return;
+  NEB_DISPATCH(dtype, F, (forward_blocks_typed<T, kF>(xw, centres, tables, edge, blend, out, valid, n, levels,
+                                                      n_threads)));
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "NeB-SLAM multi-resolution hash encoding: CPU forward and backward on raw buffers";
   m.def("forward", &forward, "encode points: x (n, 3) -> out (n, L*F)", py::call_guard<py::gil_scoped_release>());
+  m.def("forward_blocks", &forward_blocks, "features of world points blended over several blocks (no gradient)",
+        py::call_guard<py::gil_scoped_release>());
   m.def("backward", &backward, "gradients w.r.t. the points and/or the table",
         py::call_guard<py::gil_scoped_release>());
 }

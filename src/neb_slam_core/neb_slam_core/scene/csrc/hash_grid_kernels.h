@@ -133,6 +133,18 @@ inline void locate_block(const Level& lv, const T* __restrict x, int m, CellBloc
   }
 }
 
+// a[f] = the trilinear interpolation of point i's 8 corners (rows and weights in cb) in the level's rows tab.
+template <typename T, int F>
+__attribute__((always_inline)) inline void interpolate(const CellBlock<T>& cb, const T* __restrict tab, int i,
+                                                       T (&a)[F]) {
+  for (int f = 0; f < F; ++f) a[f] = 0;
+  for (int k = 0; k < 8; ++k) {
+    const T* r = tab + static_cast<int64_t>(cb.row[k][i]) * F;
+    const T wk = cb.w[k][i];
+    for (int f = 0; f < F; ++f) a[f] += wk * r[f];
+  }
+}
+
 // s[k][i] = sum_f g[f][i] * table[row k of point i, f]: the output gradient projected on each corner.
 template <typename T, int F>
 inline void corner_dot(const CellBlock<T>& cb, const T* __restrict tab, const T (*g)[kBlock], int m,
@@ -192,17 +204,84 @@ void forward(const T* x, const T* table, T* out, int64_t n, const std::vector<Le
 #pragma omp simd
         for (int i = 0; i < m; ++i) {
           T a[F];
-          for (int f = 0; f < F; ++f) a[f] = 0;
-          for (int k = 0; k < 8; ++k) {
-            const T* r = tab + static_cast<int64_t>(cb.row[k][i]) * F;
-            const T wk = cb.w[k][i];
-            for (int f = 0; f < F; ++f) a[f] += wk * r[f];
-          }
+          interpolate<T, F>(cb, tab, i, a);
           for (int f = 0; f < F; ++f) acc[f][i] = a[f];
         }
         T* ob = out + i0 * (L * F) + l * F;
         for (int i = 0; i < m; ++i)
           for (int f = 0; f < F; ++f) ob[static_cast<int64_t>(i) * (L * F) + f] = acc[f][i];
+      }
+    }
+  }
+}
+
+// Features of world points blended over several blocks (BlockMap.grid_features with more than one block
+// in view; forward only, so it serves tracking, rendering without gradients and meshing, and the torch
+// path in block_map.py runs when gradients are needed). Block b is the cube of edge `edge` centred at
+// centres[b] with its own table tables[b]; all tables share the level layout. A point takes
+//   sum_b w_b enc_b(x) / sum_b w_b   over the blocks that contain it (|x - c_b|_inf <= edge / 2),
+//   w_b = clamp((edge / 2 - |x - c_b|_inf) / blend, 1e-6, 1)   (1 when blend <= 0),
+// summed in the order of the blocks, the same arithmetic as that torch path; a point in no block gets
+// zeros and valid 0. One pass per chunk of points: the chunk's points inside each block are compacted
+// and encoded with that block's table, and their weighted features accumulate in a per-thread buffer,
+// where the torch path needs a gather, an encode call, a scatter and a blend per block.
+template <typename T, int F>
+void forward_blocks(const T* xw, const T* centres, const std::vector<const T*>& tables, T edge, T blend, T* out,
+                    uint8_t* valid, int64_t n, const std::vector<Level>& levels, int n_threads) {
+  const int L = static_cast<int>(levels.size());
+  const int D = L * F;
+  const int n_tables = static_cast<int>(tables.size());
+  const T half = T(0.5) * edge;
+  const int64_t n_blocks = (n + kBlock - 1) / kBlock;
+#pragma omp parallel num_threads(n_threads)
+  {
+    CellBlock<T> cb;
+    alignas(64) T xl[3 * kBlock];
+    alignas(64) T wt[kBlock];
+    alignas(64) T wsum[kBlock];
+    int32_t idx[kBlock];
+    std::vector<T> acc(static_cast<size_t>(kBlock) * D);
+#pragma omp for schedule(dynamic, 4)
+    for (int64_t blk = 0; blk < n_blocks; ++blk) {
+      const int64_t i0 = blk * kBlock;
+      const int m = static_cast<int>(std::min<int64_t>(kBlock, n - i0));
+      const T* xb = xw + 3 * i0;
+      std::fill(acc.begin(), acc.begin() + static_cast<size_t>(m) * D, T(0));
+      std::fill(wsum, wsum + m, T(0));
+      for (int b = 0; b < n_tables; ++b) {
+        const T* c = centres + 3 * b;
+        int k = 0;
+        for (int i = 0; i < m; ++i) {
+          const T dx = xb[3 * i] - c[0], dy = xb[3 * i + 1] - c[1], dz = xb[3 * i + 2] - c[2];
+          const T to_face = half - std::max(std::abs(dx), std::max(std::abs(dy), std::abs(dz)));
+          if (!(to_face >= T(0))) continue;  // outside (or NaN)
+          idx[k] = i;
+          xl[3 * k] = dx / edge + T(0.5);
+          xl[3 * k + 1] = dy / edge + T(0.5);
+          xl[3 * k + 2] = dz / edge + T(0.5);
+          wt[k] = blend > T(0) ? std::min(std::max(to_face / blend, T(1e-6)), T(1)) : T(1);
+          ++k;
+        }
+        if (k == 0) continue;
+        for (int l = 0; l < L; ++l) {
+          const Level& lv = levels[l];
+          locate_block(lv, xl, k, cb);
+          const T* __restrict tab = tables[b] + lv.offset * F;
+          for (int i = 0; i < k; ++i) {
+            T a[F];
+            interpolate<T, F>(cb, tab, i, a);
+            T* dst = acc.data() + static_cast<int64_t>(idx[i]) * D + l * F;
+            for (int f = 0; f < F; ++f) dst[f] += a[f] * wt[i];
+          }
+        }
+        for (int i = 0; i < k; ++i) wsum[idx[i]] += wt[i];
+      }
+      for (int i = 0; i < m; ++i) {
+        const T denom = std::max(wsum[i], T(1e-12));
+        const T* src = acc.data() + static_cast<int64_t>(i) * D;
+        T* dst = out + (i0 + i) * D;
+        for (int j = 0; j < D; ++j) dst[j] = src[j] / denom;
+        valid[i0 + i] = wsum[i] > T(0) ? 1 : 0;
       }
     }
   }

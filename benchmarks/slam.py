@@ -8,7 +8,10 @@ Sequences:
 - ``large``: the ``large`` synthetic preset (six rooms, 320x240, 600 frames, no noise; generated once
   under ``.cache/scenes/``), config ``synthetic``. Figures: ATE RMSE, accuracy, completion, completion
   ratio (5 cm) against the scene's mesh, blocks and parameter MB (checked against blocks x per-block
-  size + decoders).
+  size + decoders). The reconstruction metrics sample 1,000,000 points per mesh rather than the
+  protocol's 200,000 (``RECON_POINTS``): on this scene's 664 m^2 of surface 200,000 points leave 2.8 cm
+  between the ground truth and an independent sampling of itself, more than the 2.5 cm aimed at, and
+  1,000,000 leave 1.3 cm (``recon_floor_cm``, reported beside the metrics).
 - ``small``: the ``small`` synthetic preset (60 frames, 96x72), config ``synthetic``; a quick check.
 
 The run directory (``--out``, default ``runs/bench-<sequence>-<date-time>``) keeps everything ``neb-slam run``
@@ -38,6 +41,8 @@ from neb_slam_core.synth.generate import generate
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("NEB_SLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
 SEQUENCES = {"tum": "tum", "large": "synthetic", "small": "synthetic"}
+#: points sampled per mesh for the reconstruction metrics, where the protocol's 200,000 is too coarse
+RECON_POINTS = {"large": 1_000_000}
 
 
 def source_of(sequence: str) -> Path:
@@ -67,6 +72,8 @@ def main() -> None:
     cmd = [sys.executable, "-m", "neb_slam_core.cli.main", "run", str(source), "--config", config, "--out", str(out)]
     if args.frames:
         cmd += ["--frames", str(args.frames)]
+    if args.sequence in RECON_POINTS:
+        cmd += ["--recon-points", str(RECON_POINTS[args.sequence])]
     cmd += extra
     load_before = os.getloadavg()[0]
     code = subprocess.run(cmd).returncode
@@ -98,7 +105,7 @@ def main() -> None:
         "cpus": os.cpu_count(),
         "run_dir": str(out),
     }
-    for key in ("accuracy_cm", "completion_cm", "completion_ratio_pct", "depth_l1_cm"):
+    for key in ("accuracy_cm", "completion_cm", "completion_ratio_pct", "depth_l1_cm", "recon_floor_cm", "recon_points"):
         if key in metrics:
             figures[key] = metrics[key]
     print(json.dumps(figures, indent=2))

@@ -84,6 +84,12 @@ def test_plane_shift_with_independent_samples_matches_the_poisson_expectation():
     assert expected_cm == pytest.approx(1.0309, abs=1e-4)
     assert res.accuracy_cm == pytest.approx(expected_cm, abs=2e-3)
     assert res.completion_cm == pytest.approx(expected_cm, abs=2e-3)
+    # the sampling floor is the same expectation at d = 0: 1 / (2 sqrt(lam)) = 0.2236 cm, whatever the
+    # reconstruction; with 4x the points it halves
+    assert res.sampling_floor_cm == pytest.approx(100 / (2 * np.sqrt(n)), abs=3e-3)
+    dense = evaluate_reconstruction(rec, gt, ReconConfig(n_points=4 * n, depth_l1=NO_DEPTH), progress=False)
+    assert dense.sampling_floor_cm == pytest.approx(100 / (4 * np.sqrt(n)), abs=2e-3)
+    assert dense.n_points == 4 * n
 
 
 # ---------------------------------------------------------------------------------------------- culling

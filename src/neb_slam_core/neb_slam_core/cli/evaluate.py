@@ -105,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
             (f"completion ratio (<{recon.completion_threshold_cm:g} cm)", _fmt(recon.completion_ratio_pct, "%")),
             (f"depth L1 ({recon.n_depth_views} views)", _fmt(recon.depth_l1_cm, "cm")),
             ("culled to the cameras' view", "yes" if recon.culled else "no"),
+            (f"sampling floor ({recon.n_points} points)", _fmt(recon.sampling_floor_cm, "cm")),
         ]
     elif args.run_dir is not None and (args.run_dir / MESH_FILE).is_file():
         rows.append(("reconstruction", f"{MESH_FILE} found; pass --gt-mesh for accuracy / completion"))

@@ -250,7 +250,8 @@ def _print_summary(summary) -> None:
     if "ate_rmse_cm" in m:
         rows.append(("ATE RMSE", f"{fmt('ate_rmse_cm', 'cm')} ({m.get('n_poses')} poses)"))
     if "accuracy_cm" in m:
-        rows += [("accuracy / completion", f"{fmt('accuracy_cm', 'cm')} / {fmt('completion_cm', 'cm')}"),
+        rows += [("accuracy / completion", f"{fmt('accuracy_cm', 'cm')} / {fmt('completion_cm', 'cm')} "
+                                           f"(sampling floor {fmt('recon_floor_cm', 'cm')})"),
                  ("completion ratio", fmt("completion_ratio_pct", "%", 2)),
                  ("depth L1", fmt("depth_l1_cm", "cm"))]
     for s in summary.skipped:

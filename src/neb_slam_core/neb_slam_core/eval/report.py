@@ -71,6 +71,8 @@ def recon_metrics(recon) -> dict:
         "depth_l1_cm": recon.depth_l1_cm,
         "completion_threshold_cm": recon.completion_threshold_cm,
         "recon_culled": recon.culled,
+        "recon_points": recon.n_points,
+        "recon_floor_cm": recon.sampling_floor_cm,
     }
 
 

@@ -57,7 +57,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ..geometry.se3 import interpolate_correction, invert, make_pose
+from ..geometry.se3 import interpolate_correction, invert
 from ..types import Intrinsics
 
 
@@ -135,8 +135,10 @@ class _Interpolator:
         x0 = np.clip(np.floor(x), 0, w - 2).astype(np.int64)
         y0 = np.clip(np.floor(y), 0, h - 2).astype(np.int64)
         fx, fy = np.clip(x - x0, 0.0, 1.0), np.clip(y - y0, 0.0, 1.0)
-        d00, d01 = self.depth[y0, x0], self.depth[y0, x0 + 1]
-        d10, d11 = self.depth[y0 + 1, x0], self.depth[y0 + 1, x0 + 1]
+        flat = self.depth.ravel()
+        i00 = y0 * w + x0  # one index into the flat map: four 1-D takes are cheaper than 2-D fancy indexing
+        d00, d01 = flat.take(i00), flat.take(i00 + 1)
+        d10, d11 = flat.take(i00 + w), flat.take(i00 + w + 1)
         d = (d00 * (1 - fx) + d01 * fx) * (1 - fy) + (d10 * (1 - fx) + d11 * fx) * fy
         ok = inside & (d00 > 0) & (d01 > 0) & (d10 > 0) & (d11 > 0)
         return np.where(ok, d, 0.0), ok
@@ -148,35 +150,48 @@ def reprojection_residuals(T_world_cur: np.ndarray, pixels: np.ndarray, depths: 
     """The loop residuals for every view ``r`` and pixel ``j``: the paper's ``u'_rj - u_j`` and the depth
     disagreement in pixels (see the module docstring).
 
+    ``T_world_cur`` is one pose ``(4, 4)`` or a batch ``(K, 4, 4)``, evaluated together (the fit's
+    finite-difference Jacobian evaluates seven poses at once).
+
     Returns:
-        ``(R, N, 3)`` residuals in pixels (0 where invalid) and the ``(R, N)`` validity mask.
+        ``(R, N, 3)`` residuals in pixels (0 where invalid) and the ``(R, N)`` validity mask; with a batch
+        of poses, ``(K, R, N, 3)`` and ``(K, R, N)``.
     """
     lookups = _lookups or [_Interpolator(v.depth_m) for v in views]
-    points_world = _backproject(pixels, depths, intrinsics) @ T_world_cur[:3, :3].T + T_world_cur[:3, 3]
-    T_cur_world = invert(T_world_cur)
-    res = np.zeros((len(views), len(pixels), 3))
-    valid = np.zeros((len(views), len(pixels)), bool)
+    T = np.asarray(T_world_cur, dtype=np.float64)
+    single = T.ndim == 2
+    T = T.reshape(-1, 4, 4)
+    k_count, n = len(T), len(pixels)
+
+    def transform(points: np.ndarray, M: np.ndarray) -> np.ndarray:  # (K, N, 3) by (K, 4, 4) or (4, 4)
+        return points @ np.swapaxes(M[..., :3, :3], -1, -2) + M[..., None, :3, 3]
+
+    points_world = transform(_backproject(pixels, depths, intrinsics)[None], T)  # (K, N, 3)
+    T_cur_world = invert(T)
+    res = np.zeros((k_count, len(views), n, 3))
+    valid = np.zeros((k_count, len(views), n), bool)
     for r, (view, lookup) in enumerate(zip(views, lookups)):
-        T_r_world = invert(view.T_world_cam)
-        in_r = points_world @ T_r_world[:3, :3].T + T_r_world[:3, 3]
+        in_r = transform(points_world, invert(view.T_world_cam)).reshape(-1, 3)
         u_r, front = _project(in_r, view.intrinsics)
         d_r, ok = lookup(u_r)
         ok &= front & (d_r > 0)
-        surface_r = _backproject(u_r, d_r, view.intrinsics)
-        T_cur_r = T_cur_world @ view.T_world_cam
-        back = surface_r @ T_cur_r[:3, :3].T + T_cur_r[:3, 3]
+        surface_r = _backproject(u_r, d_r, view.intrinsics).reshape(k_count, n, 3)
+        back = transform(surface_r, T_cur_world @ view.T_world_cam).reshape(-1, 3)
         u_back, front_back = _project(back, intrinsics)
         ok &= front_back
         z_r = np.where(front, in_r[:, 2], 1.0)
         depth_px = intrinsics.fx * (d_r - z_r) / z_r
-        res[r] = np.where(ok[:, None], np.concatenate([u_back - pixels, depth_px[:, None]], axis=1), 0.0)
-        valid[r] = ok
-    return res, valid
+        u_err = u_back.reshape(k_count, n, 2) - pixels
+        r_all = np.concatenate([u_err, depth_px.reshape(k_count, n, 1)], axis=2)
+        ok = ok.reshape(k_count, n)
+        res[:, r] = np.where(ok[..., None], r_all, 0.0)
+        valid[:, r] = ok
+    return (res[0], valid[0]) if single else (res, valid)
 
 
 def fit_loop_pose(T_world_init: np.ndarray, pixels: np.ndarray, depths: np.ndarray, intrinsics: Intrinsics,
                   views: list[DepthView], loss_scale_px: float = 1.0, min_scale_px: float = 0.05, rounds: int = 3,
-                  max_evaluations: int = 100) -> PoseFit:
+                  max_evaluations: int = 100, diff_step: float = 1e-6) -> PoseFit:
     """Minimise the loop objective over the current keyframe's pose, from ``T_world_init`` (the
     geometric check's estimate), for ``(N, 2)`` pixels with ``(N,)`` depths.
 
@@ -186,15 +201,38 @@ def fit_loop_pose(T_world_init: np.ndarray, pixels: np.ndarray, depths: np.ndarr
     scale twice the residuals' robust spread (1.4826 x median absolute residual) at the last pose,
     clipped to [``min_scale_px``, ``loss_scale_px``]: exact synthetic depth ends at the floor, real
     depth at its own noise level.
+
+    The Jacobian is scipy's forward-difference scheme (relative step ``diff_step``) computed here, with
+    the six shifted poses and the current one evaluated in one batch: the same differences as scipy's own
+    ``approx_derivative``, at about a third of the time (seven separate evaluations are mostly Python
+    and small-array overhead).
     """
     lookups = [_Interpolator(v.depth_m) for v in views]
     R0, t0 = T_world_init[:3, :3], T_world_init[:3, 3]
 
+    def poses(x: np.ndarray) -> np.ndarray:  # (K, 6) -> (K, 4, 4)
+        out = np.tile(np.eye(4), (len(x), 1, 1))
+        out[:, :3, :3] = Rotation.from_rotvec(x[:, :3]).as_matrix() @ R0
+        out[:, :3, 3] = t0 + x[:, 3:]
+        return out
+
     def pose(x: np.ndarray) -> np.ndarray:
-        return make_pose(Rotation.from_rotvec(x[:3]).as_matrix() @ R0, t0 + x[3:])
+        return poses(x[None])[0]
 
     def residuals(x: np.ndarray) -> np.ndarray:
         return reprojection_residuals(pose(x), pixels, depths, intrinsics, views, lookups)[0].ravel()
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        # scipy's 2-point rule for a relative step: h_i = diff_step * x_i, or sqrt(eps) * max(1, |x_i|) where
+        # that step vanishes (x_i = 0), signed like x_i (0 counts as positive); the divisor is the step
+        # actually taken, (x + h) - x
+        sign = np.where(x >= 0, 1.0, -1.0)
+        h = diff_step * sign * np.abs(x)
+        h = np.where((x + h) - x == 0, np.sqrt(np.finfo(np.float64).eps) * sign * np.maximum(1.0, np.abs(x)), h)
+        h = (x + h) - x
+        shifted = np.vstack([x, x + np.diag(h)])  # (7, 6): x, then x with coordinate i moved by h_i
+        f = reprojection_residuals(poses(shifted), pixels, depths, intrinsics, views, lookups)[0].reshape(7, -1)
+        return ((f[1:] - f[0]) / h[:, None]).T
 
     def rms(T: np.ndarray) -> tuple[float, int, np.ndarray]:
         r, ok = reprojection_residuals(T, pixels, depths, intrinsics, views, lookups)
@@ -208,8 +246,8 @@ def fit_loop_pose(T_world_init: np.ndarray, pixels: np.ndarray, depths: np.ndarr
             _, n, r = rms(pose(x))
             spread = 1.4826 * float(np.median(np.abs(r))) if n else loss_scale_px
             scale = float(np.clip(2.0 * spread, min_scale_px, loss_scale_px))
-        x = least_squares(residuals, x, loss="cauchy", f_scale=scale, max_nfev=max_evaluations,
-                          x_scale=np.full(6, 1e-2), diff_step=1e-6).x
+        x = least_squares(residuals, x, jac=jacobian, loss="cauchy", f_scale=scale, max_nfev=max_evaluations,
+                          x_scale=np.full(6, 1e-2)).x
     T = pose(x)
     rms_end, n_valid, _ = rms(T)
     return PoseFit(T, rms_start, rms_end, n_valid, len(pixels))

@@ -135,3 +135,28 @@ def test_cli_synth(tmp_path, capsys):
     assert "nothing to do" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         cli_main(["synth", str(out), "--size", "big"])
+
+
+def test_an_interrupted_run_is_regenerated_not_refused(tmp_path, monkeypatch):
+    # Ctrl-C while the frames are written: the folder holds some PNGs and no index; the next run must
+    # recognise it as its own (not "not empty"), not take it for complete, and write it whole.
+    out = tmp_path / "s"
+    written = []
+    real_write = gen._write_png
+
+    def interrupt_after_three(path, image):
+        if len(written) == 3:
+            raise KeyboardInterrupt
+        written.append(path)
+        real_write(path, image)
+
+    monkeypatch.setattr(gen, "_write_png", interrupt_after_three)
+    with pytest.raises(KeyboardInterrupt):
+        gen.generate("small", out, n_frames=3, size=(32, 24), progress=False)
+    monkeypatch.setattr(gen, "_write_png", real_write)
+    spec = gen.resolve_spec("small", n_frames=3, size=(32, 24))
+    assert len(list(out.rglob("*.png"))) == 3 and not (out / "rgb.txt").exists()
+    assert not gen.is_complete(out, spec)
+    gen.generate("small", out, n_frames=3, size=(32, 24), progress=False)
+    assert gen.is_complete(out, spec) and len(open_dataset(out)) == 3
+    assert "complete" not in json.loads((out / "scene.json").read_text())

@@ -9,7 +9,8 @@ Output folder::
     intrinsics.json       fx fy cx cy width height (read by the TUM loader)
     mesh.ply              the ground-truth mesh with vertex colours (shaded albedo)
     scene.json            seed, every option, scene bounds and trajectory figures; written last, so
-                          its presence marks a complete folder
+                          it marks a complete folder (while a run writes the folder it holds only the
+                          options and "complete": false, so an interrupted run is regenerated next time)
 
 The folder opens with :func:`neb_slam_core.datasets.open_dataset`. The output is a function of the
 options alone: the same options give the same bytes.
@@ -126,6 +127,11 @@ def generate(preset_or_spec: SceneSpec | str = "default", out_dir: str | Path = 
         log.info("%s already holds this synthetic scene (%s, seed %d); nothing to do", out, spec.name, spec.seed)
         return out
     _prepare_folder(out, force)
+    # Marks the folder as ours while it is written: an interrupted run (Ctrl-C, a crash) leaves a folder
+    # the next run recognises, regenerates and never takes for complete (is_complete wants the full
+    # summary written last), instead of refusing it as someone else's non-empty folder.
+    (out / SCENE_FILE).write_text(json.dumps({"format": FORMAT_NAME, "version": FORMAT_VERSION,
+                                              "complete": False, "options": spec.to_dict()}, indent=2) + "\n")
 
     seq = build_sequence(spec)
     intr = spec.camera.intrinsics()
@@ -193,7 +199,7 @@ def is_complete(out: Path, spec: SceneSpec) -> bool:
         meta = json.loads((out / SCENE_FILE).read_text())
     except (OSError, ValueError):
         return False
-    if meta.get("format") != FORMAT_NAME or meta.get("version") != FORMAT_VERSION:
+    if meta.get("format") != FORMAT_NAME or meta.get("version") != FORMAT_VERSION or meta.get("complete") is False:
         return False
     if meta.get("options") != json.loads(json.dumps(spec.to_dict())):
         return False

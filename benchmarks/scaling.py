@@ -48,7 +48,7 @@ from neb_slam_core.synth.generate import generate
 from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.sampling import sample_depths
 from neb_slam_core.scene.freeze import frozen
-from neb_slam_core.tracking.gauss_newton import apply_step, evaluate_pose, normal_equations
+from neb_slam_core.tracking.gauss_newton import apply_step, damped_step, evaluate_pose, normal_equations
 from neb_slam_core.tracking.tracker import Tracker
 
 REPO = Path(__file__).resolve().parents[1]
@@ -70,8 +70,7 @@ def track_every_step(tracker_cfg, render_cfg, block_map, frame, T0) -> None:
         ev = evaluate_pose(block_map, px, T, z, render_cfg, ids)
         for _ in range(tracker_cfg.iterations):
             H, g = normal_equations(ev, block_map, ids, render_cfg.truncation_m)
-            diag = np.maximum(np.diag(H), 1e-12 * max(float(np.diag(H).max()), 1e-30))
-            T = apply_step(T, -np.linalg.solve(H + tracker_cfg.gn_damping * np.diag(diag), g))
+            T = apply_step(T, damped_step(H, g, tracker_cfg.gn_damping))
             ev = evaluate_pose(block_map, px, T, z, render_cfg, ids)
 
 

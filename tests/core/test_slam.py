@@ -156,6 +156,9 @@ def test_non_keyframes_take_their_share_of_the_next_keyframes_correction(full_ru
         np.testing.assert_allclose(Rotation.from_matrix(turn).as_rotvec(), [0.0, np.radians(2.0), 0.0], atol=1e-12)
         np.testing.assert_allclose(slam.pose_of(5), rigid5, atol=1e-12)
         np.testing.assert_allclose(slam.pose_of(12), drift @ rigid12, atol=1e-12)
+        # the whole trajectory, computed in one batch, is every frame's pose_of
+        batch = slam.trajectory().poses
+        np.testing.assert_allclose(batch, np.stack([slam.pose_of(i) for i in range(len(batch))]), atol=1e-12)
     finally:
         slam.set_keyframe_poses(poses)
 

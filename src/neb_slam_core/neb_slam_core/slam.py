@@ -95,6 +95,23 @@ def frame_pose(T_world_kf: np.ndarray, T_kf_cam: np.ndarray, share=0.0,
     return interpolate_correction(drift, T[..., :3, 3], share) @ T
 
 
+def frames_with_keyframes(rows: np.ndarray, k: np.ndarray, T_kf_cam: np.ndarray, keyframe_poses: np.ndarray,
+                          keyframe_rows: np.ndarray, links: np.ndarray) -> np.ndarray:
+    """:func:`frame_pose` of many frames at once: the frames at rows ``rows`` (F,) of their sequence, kept
+    relative to keyframes ``k`` (F,) by ``T_kf_cam`` (F, 4, 4). Keyframe ``j`` is now at
+    ``keyframe_poses[j]``, sits at row ``keyframe_rows[j]`` (-1: unknown, so the frames before it take no
+    share of its move) and was linked by tracking to keyframe ``j - 1`` as ``links[j]`` (``links[0]``
+    unused). A frame whose keyframe has no (known) next one moves rigidly with its keyframe."""
+    last = len(keyframe_poses) - 1
+    nxt = np.minimum(k + 1, last)
+    has_next = (k < last) & (keyframe_rows[nxt] >= 0)
+    span = np.where(has_next, keyframe_rows[nxt] - keyframe_rows[k], 1)
+    share = np.where(has_next, (rows - keyframe_rows[k]) / span, 0.0)
+    T_world_next = np.where(has_next[:, None, None], keyframe_poses[nxt], keyframe_poses[k])
+    T_kf_next = np.where(has_next[:, None, None], links[nxt], np.eye(4))
+    return frame_pose(keyframe_poses[k], T_kf_cam, share, T_world_next, T_kf_next)
+
+
 def corrected_trajectory(stamps_ns: np.ndarray, poses: np.ndarray, keyframe_stamps_ns: np.ndarray,
                          keyframe_poses: np.ndarray) -> Trajectory:
     """A trajectory computed with earlier keyframe poses, after the keyframes moved to ``keyframe_poses``
@@ -115,16 +132,13 @@ def corrected_trajectory(stamps_ns: np.ndarray, poses: np.ndarray, keyframe_stam
     out = poses.copy()
     if len(moved) == 0:
         return Trajectory(stamps, out)
+    # the links between consecutive keyframes as the trajectory holds them
+    links = np.tile(np.eye(4), (len(kf_rows), 1, 1))
+    both = np.flatnonzero((kf_rows[1:] >= 0) & (kf_rows[:-1] >= 0)) + 1
+    links[both] = invert(poses[kf_rows[both - 1]]) @ poses[kf_rows[both]]
     k = owner[moved]
-    first = kf_rows[k]
-    nxt = np.append(kf_rows, -1)[k + 1]
-    has_next = nxt >= 0
-    T_kf_then_inv = invert(poses[first])
-    T_world_kf = keyframe_poses[k]
-    T_world_next = np.where(has_next[:, None, None], keyframe_poses[np.minimum(k + 1, len(kf_rows) - 1)], T_world_kf)
-    T_kf_next = np.where(has_next[:, None, None], T_kf_then_inv @ poses[np.maximum(nxt, 0)], np.eye(4))
-    share = np.where(has_next, (moved - first) / np.where(has_next, nxt - first, 1), 0.0)
-    out[moved] = frame_pose(T_world_kf, T_kf_then_inv @ poses[moved], share, T_world_next, T_kf_next)
+    T_kf_cam = invert(poses[kf_rows[k]]) @ poses[moved]
+    out[moved] = frames_with_keyframes(moved, k, T_kf_cam, keyframe_poses, kf_rows, links)
     return Trajectory(stamps, out)
 
 
@@ -204,14 +218,9 @@ class Frontend:
         tracker publishes this after every frame)."""
         if not self._frames:
             return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
-        k = np.array([f.keyframe_id for f in self._frames])
-        kf_poses = np.stack(self.keyframe_poses)
-        links = np.stack(self._keyframe_links + [np.eye(4)])          # the last keyframe has no next one
-        kf_frames = np.array(self._keyframe_frames + [0])
-        has_next = k + 1 < len(kf_poses)
-        share = np.where(has_next, (np.arange(len(k)) - kf_frames[k]) / np.where(has_next, kf_frames[k + 1] - kf_frames[k], 1), 0.0)
-        T_world_next = np.where(has_next[:, None, None], kf_poses[np.minimum(k + 1, len(kf_poses) - 1)], kf_poses[k])
-        poses = frame_pose(kf_poses[k], np.stack([f.T_kf_cam for f in self._frames]), share, T_world_next, links[k + 1])
+        poses = frames_with_keyframes(np.arange(self.n_frames), np.array([f.keyframe_id for f in self._frames]),
+                                      np.stack([f.T_kf_cam for f in self._frames]), np.stack(self.keyframe_poses),
+                                      np.array(self._keyframe_frames), np.stack(self._keyframe_links))
         return Trajectory(np.array([f.stamp_ns for f in self._frames]), poses)
 
     def set_keyframe_poses(self, poses: np.ndarray) -> None:

@@ -110,7 +110,8 @@ class ReconResult:
         n_depth_views: accepted virtual views (0 when Depth L1 was not computed).
         depth_rec_coverage_pct: % of ground-truth-valid pixels where the reconstruction was also hit.
         sampling_floor_cm: mean distance from an independent sampling of the ground truth (same count, same
-            culling) to the ground truth's points: the accuracy of a perfect reconstruction.
+            culling) to the ground truth's points: the accuracy of a perfect reconstruction (None when
+            culling leaves none of those points).
     """
 
     accuracy_cm: float
@@ -333,7 +334,7 @@ def evaluate_reconstruction(rec_mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh,
             which = "reconstruction" if len(rec_pts) == 0 else "ground-truth"
             raise DatasetError(None, f"no {which} surface is seen by the given cameras after culling "
                                      "(are the mesh and the camera poses in the same world frame?)")
-    floor = nearest_distances(gt_again, gt_pts) if len(gt_again) else np.zeros(1)
+    floor = nearest_distances(gt_again, gt_pts) if len(gt_again) else None  # culled away: no estimate
     acc = nearest_distances(rec_pts, gt_pts)
     comp = nearest_distances(gt_pts, rec_pts)
     l1 = coverage = None
@@ -351,6 +352,6 @@ def evaluate_reconstruction(rec_mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh,
         culled=culled,
         n_depth_views=n_views,
         depth_rec_coverage_pct=coverage,
-        sampling_floor_cm=float(floor.mean() * 100.0),
+        sampling_floor_cm=None if floor is None else float(floor.mean() * 100.0),
         n_points=config.n_points,
     )

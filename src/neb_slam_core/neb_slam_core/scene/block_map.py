@@ -87,17 +87,15 @@ class BlockMap(nn.Module):
 
     def contains(self, points_world: torch.Tensor, block_ids: list[int] | None = None) -> torch.Tensor:
         """``(N, M)`` bool: point n lies in block ``block_ids[m]`` (all blocks when None)."""
-        ids = range(len(self.blocks)) if block_ids is None else block_ids
-        return self._face_distance(points_world, list(ids)) >= 0
+        ids = list(range(len(self.blocks))) if block_ids is None else list(block_ids)
+        return self._face_distance(points_world, self.centres()[ids]) >= 0
 
-    def _face_distance(self, points_world: torch.Tensor, ids: list[int]) -> torch.Tensor:
-        """``(N, M)`` distance from each point to the nearest face of block ``ids[m]``, negative outside
-        (half the edge minus the Chebyshev distance to the centre): containment and blend weights in one."""
-        if not ids:
-            return points_world.new_zeros(points_world.shape[0], 0)
-        centres = self.centres()[ids].to(points_world.dtype)
+    def _face_distance(self, points_world: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
+        """``(N, M)`` distance from each point to the nearest face of the block centred at ``centres[m]``,
+        negative outside (half the edge minus the Chebyshev distance to the centre): containment and
+        blend weights in one."""
         half = 0.5 * self.block_cfg.edge_m
-        return half - (points_world[:, None, :] - centres[None]).abs().amax(dim=-1)
+        return half - (points_world[:, None, :] - centres.to(points_world.dtype)[None]).abs().amax(dim=-1)
 
     def blocks_in_frustum(self, T_world_cam: np.ndarray, intrinsics: Intrinsics, near_m: float,
                           far_m: float) -> list[int]:
@@ -148,13 +146,14 @@ class BlockMap(nn.Module):
         ids = list(range(len(self.blocks))) if block_ids is None else list(block_ids)
         n = points_world.shape[0]
         dim = self.block_cfg.grid.n_output_dims
+        centres = self.centres()[ids].to(points_world.dtype)
         if len(ids) > 1:
             # without gradients, the C++ kernel does the whole blend in one pass (same sum as below)
-            blended = encode_blended(points_world, self.centres()[ids], [self.blocks[i].grid for i in ids],
+            blended = encode_blended(points_world, centres, [self.blocks[i].grid for i in ids],
                                      self.block_cfg.edge_m, self.block_cfg.blend_m)
             if blended is not None:
                 return blended
-        to_face = self._face_distance(points_world, ids)  # (N, M)
+        to_face = self._face_distance(points_world, centres)  # (N, M)
         inside = to_face >= 0
         valid = inside.any(dim=1)
         if len(ids) == 1:
@@ -172,7 +171,6 @@ class BlockMap(nn.Module):
         if point_of.numel() == 0:
             return feats, valid
         counts = inside.sum(dim=0).tolist()
-        centres = self.centres()[ids].to(points_world.dtype)
         local = (points_world[point_of] - centres[block_of]) / self.block_cfg.edge_m + 0.5
         encoded = torch.cat([self.blocks[block_id].grid(chunk)
                              for block_id, chunk in zip(ids, local.split(counts)) if chunk.shape[0]])

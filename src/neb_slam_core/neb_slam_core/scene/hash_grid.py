@@ -283,8 +283,9 @@ def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"
     c = centres.detach().to(x.dtype).contiguous().reshape(-1, 3)
     tables = [g.table.detach().contiguous() for g in grids]  # kept alive here: the kernel reads raw pointers
     g0 = grids[0]
-    for t in tables:
-        _check_layout(t, g0.level_offsets, g0.level_resolutions, g0.level_is_dense, x.dtype)
+    _check_layout(tables[0], g0.level_offsets, g0.level_resolutions, g0.level_is_dense, x.dtype)
+    if any(t.shape != tables[0].shape or t.dtype != tables[0].dtype for t in tables[1:]):
+        raise ValueError("hash grid fast path: the blocks' tables differ in shape or dtype")
     out = torch.empty(x.shape[0], meta.n_output_dims, dtype=x.dtype)
     valid = torch.empty(x.shape[0], dtype=torch.bool)
     ext.forward_blocks(_DTYPE_CODES[x.dtype], meta.n_features, _ptr(x), _ptr(c), [_ptr(t) for t in tables],

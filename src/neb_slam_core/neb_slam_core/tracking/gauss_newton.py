@@ -196,6 +196,14 @@ def normal_equations(ev: PoseEvaluation, block_map: BlockMap, block_ids: list[in
     return H.double().cpu().numpy(), g.double().cpu().numpy()
 
 
+def damped_step(H: np.ndarray, g: np.ndarray, damping: float) -> np.ndarray:
+    """The Levenberg-Marquardt step (omega, dt) of the system ``H``, ``g``: ``-(H + damping diag(H))^-1 g``,
+    the diagonal floored at 1e-12 of its largest entry so that a direction the rays do not constrain
+    stays solvable. Raises ``numpy.linalg.LinAlgError`` when it is not."""
+    diag = np.maximum(np.diag(H), 1e-12 * max(float(np.diag(H).max()), 1e-30))
+    return -np.linalg.solve(H + damping * np.diag(diag), g)
+
+
 def apply_step(T_world_cam: np.ndarray, step: np.ndarray) -> np.ndarray:
     """The pose after the update ``step`` = (omega, dt): ``R = exp(omega) R``, ``t = t + dt`` (float64), the
     parameterisation of :func:`~neb_slam_core.geometry.lie.compose_delta`."""

@@ -25,7 +25,7 @@ from ..render.sampling import sample_depths
 from ..scene.block_map import BlockMap
 from ..scene.freeze import frozen
 from ..types import RgbdFrame
-from .gauss_newton import apply_step, evaluate_pose, normal_equations, spatial_gradients
+from .gauss_newton import apply_step, damped_step, evaluate_pose, normal_equations, spatial_gradients
 
 
 @dataclass
@@ -115,9 +115,8 @@ class Tracker:
         damping = c.gn_damping
         steps = 0
         for steps in range(1, c.iterations + 1):
-            diag = np.maximum(np.diag(H), 1e-12 * max(float(np.diag(H).max()), 1e-30))
             try:
-                step = -np.linalg.solve(H + damping * np.diag(diag), g)
+                step = damped_step(H, g, damping)
             except np.linalg.LinAlgError:
                 break
             T_new = apply_step(T, step)

@@ -1,4 +1,5 @@
-"""Speed of the hash-grid encoding (the hot kernel): fast C++ path vs plain-torch reference vs a bare gather.
+"""Speed of the encodings (the hot kernels): fast C++ paths vs plain-torch references (and, for the hash
+grid, vs a bare gather).
 
 Measures, for one block with the paper's grid (16 levels x 2 features, T = 2^15), on 44,032 points
 (1024 rays x 43 samples, one tracking iteration) and 110,080 points (2560 rays x 43 samples, one mapping
@@ -9,6 +10,9 @@ iteration):
 - the memory-bound floor: a bare ``index_select`` of as many table rows as the encoding looks up
   (N x 16 levels x 8 corners rows of 2 floats) from a table of the same size, with random rows and with
   the encoding's own rows (same locality).
+
+- the one-blob encoding of the same points in world metres: fast and reference, forward alone (tracking
+  queries) and forward+backward with the point gradient (mapping with keyframe poses optimised).
 
 Points are like real rays (a camera inside the block, random pixels, 32 stratified samples between near
 and far plus 11 around the surface, sorted along each ray) and, for comparison, uniform in the block.
@@ -25,8 +29,10 @@ Example::
 
 ``--json FILE`` writes, for the 44,032 ray points: fast_fwd_ms, fast_fwd_bwd_ms (table grad),
 fast_fwd_bwd_points_ms (point grad), reference_fwd_bwd_ms, floor_gather_ms (random rows),
-floor_gather_local_ms, ratio_reference_over_fast, ratio_fast_fwd_over_floor, and block_mb_t15 /
-block_mb_t14 (parameter MB, 10^6 bytes, per block), plus the same timings per case under "cases".
+floor_gather_local_ms, ratio_reference_over_fast, ratio_fast_fwd_over_floor, block_mb_t15 /
+block_mb_t14 (parameter MB, 10^6 bytes, per block), one_blob_fast_fwd_ms, one_blob_fast_fwd_bwd_ms,
+one_blob_reference_fwd_ms, one_blob_reference_fwd_bwd_ms, one_blob_ratio_fwd_bwd (reference over fast),
+plus the same timings per case under "cases".
 """
 
 from __future__ import annotations
@@ -43,8 +49,9 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from neb_slam_core.config import HashGridConfig
+from neb_slam_core.config import HashGridConfig, OneBlobConfig
 from neb_slam_core.scene.hash_grid import HashGrid, HashGridMeta, fast_path_unavailable_reason, level_cells
+from neb_slam_core.scene.one_blob import OneBlob
 
 N_SAMPLES_PER_RAY = 43  # 32 uniform + 11 near the surface (the paper's TUM/Replica setting)
 
@@ -54,6 +61,10 @@ FAST_TRACKING = "fast fwd+bwd (point grad, tracking)"
 REFERENCE = "reference fwd+bwd (table grad)"
 FLOOR_RANDOM = "floor: index_select, random rows"
 FLOOR_LOCAL = "floor: index_select, encoding's rows"
+BLOB_FAST_FWD = "one-blob fast forward"
+BLOB_FAST_FWD_BWD = "one-blob fast fwd+bwd (point grad)"
+BLOB_REF_FWD = "one-blob reference forward"
+BLOB_REF_FWD_BWD = "one-blob reference fwd+bwd (point grad)"
 
 
 def ray_points(n_rays: int, seed: int, edge_m: float = 5.0) -> torch.Tensor:
@@ -151,7 +162,31 @@ def run_case(label: str, x01: torch.Tensor, cfg: HashGridConfig, repeats: int, r
         timings[REFERENCE] = median_ms(ref_fwd_bwd_table, ref_repeats, warmup=1)
     timings[FLOOR_RANDOM] = median_ms(lambda: table.index_select(0, rand_rows), repeats)
     timings[FLOOR_LOCAL] = median_ms(lambda: table.index_select(0, local_rows), repeats)
+    timings.update(one_blob_timings((x01 - 0.5) * 5.0, repeats))  # the same points in metres, block at 0
     return CaseResult(label, n, timings)
+
+
+def one_blob_timings(points_world: torch.Tensor, repeats: int) -> dict[str, tuple[float, float]]:
+    """The one-blob encoding's forward and forward+backward (point gradient), fast and reference."""
+    n_dims = 3 * OneBlobConfig().n_bins
+    grad_out = torch.randn(points_world.shape[0], n_dims, generator=torch.Generator().manual_seed(3))
+    p = points_world.clone().requires_grad_(True)
+    out = {}
+    for backend, (fwd_name, bwd_name) in (("fast", (BLOB_FAST_FWD, BLOB_FAST_FWD_BWD)),
+                                          ("reference", (BLOB_REF_FWD, BLOB_REF_FWD_BWD))):
+        enc = OneBlob(OneBlobConfig(), backend=backend)
+
+        def forward():
+            with torch.no_grad():
+                enc(points_world)
+
+        def forward_backward():
+            p.grad = None
+            enc(p).backward(grad_out)
+
+        out[fwd_name] = median_ms(forward, repeats)
+        out[bwd_name] = median_ms(forward_backward, repeats)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -202,6 +237,7 @@ def main(argv: list[str] | None = None) -> int:
             ratios.append(f"reference/fast fwd+bwd = {t[REFERENCE] / t[FAST_MAPPING]:.1f}x")
         ratios.append(f"fast fwd/floor = {fwd / t[FLOOR_RANDOM]:.2f} "
                       f"(vs encoding's rows {fwd / t[FLOOR_LOCAL]:.2f})")
+        ratios.append(f"one-blob reference/fast fwd+bwd = {t[BLOB_REF_FWD_BWD] / t[BLOB_FAST_FWD_BWD]:.1f}x")
         print("  " + ", ".join(ratios))
 
     if args.json:
@@ -217,11 +253,16 @@ def main(argv: list[str] | None = None) -> int:
             "floor_gather_local_ms": head[FLOOR_LOCAL][0],
             "block_mb_t15": block_mb_t15,
             "block_mb_t14": block_mb_t14,
+            "one_blob_fast_fwd_ms": head[BLOB_FAST_FWD][0],
+            "one_blob_fast_fwd_bwd_ms": head[BLOB_FAST_FWD_BWD][0],
+            "one_blob_reference_fwd_ms": head[BLOB_REF_FWD][0],
+            "one_blob_reference_fwd_bwd_ms": head[BLOB_REF_FWD_BWD][0],
             "load_average_1min": os.getloadavg()[0],
             "cases": {r.label: {k: {"median_ms": v[0], "min_ms": v[1]} for k, v in r.timings.items()} for r in results},
         }
         summary["ratio_reference_over_fast"] = summary["reference_fwd_bwd_ms"] / summary["fast_fwd_bwd_ms"]
         summary["ratio_fast_fwd_over_floor"] = summary["fast_fwd_ms"] / summary["floor_gather_ms"]
+        summary["one_blob_ratio_fwd_bwd"] = summary["one_blob_reference_fwd_bwd_ms"] / summary["one_blob_fast_fwd_bwd_ms"]
         args.json.write_text(json.dumps(summary, indent=2) + "\n")
         print(f"\nwrote {args.json}")
     return 0

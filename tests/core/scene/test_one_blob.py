@@ -1,13 +1,17 @@
 import math
 
+import pytest
 import torch
 
 from neb_slam_core.config import OneBlobConfig
+from neb_slam_core.errors import ConfigError
+from neb_slam_core.scene import hash_grid as hg
 from neb_slam_core.scene.one_blob import OneBlob
 
 
-def test_code_at_origin_is_hand_worked():
-    enc = OneBlob(OneBlobConfig(n_bins=16, period_m=10.0))
+@pytest.mark.parametrize("backend", ["reference", "auto"])
+def test_code_at_origin_is_hand_worked(backend):
+    enc = OneBlob(OneBlobConfig(n_bins=16, period_m=10.0), backend=backend)
     code = enc(torch.zeros(1, 3)).reshape(3, 16)
     # phase 0 lies 1/32 from the centres of bins 0 and 15 (on the circle), sigma = 1/16
     expected_edge = math.exp(-0.5 * (0.5) ** 2)
@@ -34,3 +38,71 @@ def test_smooth_and_differentiable_in_points():
     # a millimetre step changes the code by a millimetre's worth, not a jump
     d = (enc(x + 1e-3) - enc(x)).abs().max()
     assert d < 0.01
+
+
+# ---------------------------------------------------------------------------------------------- fast path
+
+
+@pytest.fixture(scope="module")
+def fast_ext():
+    reason = hg.fast_path_unavailable_reason()
+    if reason is not None:
+        pytest.fail(f"the C++ extension did not build: {reason}")
+
+
+def _points(n: int, dtype, seed: int = 0) -> torch.Tensor:
+    """Points over several periods on both sides of 0, plus the awkward ones: exact bin centres, bin
+    boundaries, the half-circle point opposite a centre, 0 and multiples of the period."""
+    g = torch.Generator().manual_seed(seed)
+    p = torch.rand(n, 3, generator=g, dtype=dtype) * 60.0 - 30.0
+    special = torch.tensor([0.0, 10.0, -10.0, 20.0, 0.3125, 0.625, 5.3125, -4.6875, 9.999999, -1e-9],
+                           dtype=dtype)
+    rows = special[torch.arange(30) % len(special)].reshape(10, 3)
+    return torch.cat([p, rows])
+
+
+@pytest.mark.parametrize("dtype,atol", [(torch.float32, 1e-6), (torch.float64, 1e-13)])
+@pytest.mark.parametrize("n_bins,period", [(16, 10.0), (17, 7.0), (2, 3.0), (1, 5.0)])
+def test_fast_path_matches_the_reference(fast_ext, dtype, atol, n_bins, period):
+    cfg = OneBlobConfig(n_bins=n_bins, period_m=period)
+    fast, ref = OneBlob(cfg, backend="fast"), OneBlob(cfg, backend="reference")
+    p = _points(5000, dtype)
+    assert fast.uses_fast_path(p) and not ref.uses_fast_path(p)
+    a, b = fast(p), ref(p)
+    assert a.dtype == dtype and a.shape == (len(p), 3 * n_bins)
+    assert (a - b).abs().max() <= atol
+
+
+@pytest.mark.parametrize("dtype,rtol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+def test_fast_path_gradient_matches_autograd_of_the_reference(fast_ext, dtype, rtol):
+    cfg = OneBlobConfig()
+    fast, ref = OneBlob(cfg, backend="fast"), OneBlob(cfg, backend="reference")
+    # no point on a centre or exactly opposite one: |d| and min(d, 1 - d) have no derivative there
+    p = torch.rand(5000, 3, generator=torch.Generator().manual_seed(3), dtype=dtype) * 60.0 - 30.0
+    w = torch.randn(len(p), 48, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    pa, pb = p.clone().requires_grad_(True), p.clone().requires_grad_(True)
+    (fast(pa) * w).sum().backward()
+    (ref(pb) * w).sum().backward()
+    scale = pb.grad.abs().max()
+    assert (pa.grad - pb.grad).abs().max() <= rtol * scale
+
+
+def test_fast_path_passes_gradcheck(fast_ext):
+    enc = OneBlob(OneBlobConfig(n_bins=16, period_m=10.0), backend="fast")
+    p = torch.rand(40, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 20.0 - 10.0
+    assert torch.autograd.gradcheck(enc, (p.requires_grad_(True),))
+
+
+def test_fast_path_keeps_leading_dimensions_and_nan(fast_ext):
+    enc = OneBlob(OneBlobConfig(), backend="fast")
+    p = torch.zeros(2, 5, 3)
+    p[1, 2, 0] = float("nan")
+    code = enc(p)
+    assert code.shape == (2, 5, 48)
+    assert torch.isnan(code[1, 2, :16]).all() and torch.isfinite(code[1, 2, 16:]).all()
+    assert torch.equal(code[0], code[0, :1].expand(5, 48))
+
+
+def test_unknown_backend_is_refused():
+    with pytest.raises(ConfigError, match="OneBlob backend 'gpu'"):
+        OneBlob(OneBlobConfig(), backend="gpu")

@@ -57,7 +57,7 @@ class BlockMap(nn.Module):
         self.grid_backend = grid_backend
         self.seed = int(seed)
         self.blocks = nn.ModuleList()
-        self.one_blob = OneBlob(blob_cfg)
+        self.one_blob = OneBlob(blob_cfg, backend=grid_backend)
         with torch.random.fork_rng(devices=[]):  # decoder initialisation is part of the map's seed
             torch.manual_seed(self.seed)
             self.decoders = Decoders(self.one_blob.n_output_dims, block_cfg.grid.n_output_dims, decoder_cfg)

@@ -6,32 +6,106 @@ coordinates normalised by the scene bounds; an unknown scene has none, so we enc
 its phase ``x / period mod 1`` and measure the distance to a bin centre on the circle. The code is
 therefore smooth everywhere and needs no bounds; it repeats every ``period_m`` metres, which the
 per-block hash features disambiguate.
+
+Two interchangeable implementations, as for the hash grid (:mod:`.hash_grid`):
+
+- :func:`encode_reference`: plain torch, any device and float dtype, differentiated by autograd;
+- the fast CPU path: one pass over the points in C++ (``csrc/one_blob_kernels.h``, in the extension of
+  :mod:`._ext`) with a hand-written gradient w.r.t. the points. Torch's chain of about ten element-wise
+  ops over ``(N, 3, K)`` and autograd's walk back through them cost more than the decoders the code
+  feeds; the kernel needs two exponentials per axis and side instead of K (see its header).
+
+:class:`OneBlob` picks between them like :class:`~.hash_grid.HashGrid` (``backend="auto"``: the fast path
+for CPU float32/float64 points when the extension builds, the reference otherwise).
 """
 
 from __future__ import annotations
 
 import torch
+from torch import Tensor
 
 from ..config import OneBlobConfig
+from ..errors import ConfigError
+from . import _ext
+from .hash_grid import BACKENDS, fast_path_unavailable_reason
+
+_DTYPE_CODES = {torch.float32: 0, torch.float64: 1}
+
+
+def encode_reference(points_world: Tensor, n_bins: int, period_m: float) -> Tensor:
+    """``(N, 3)`` world points -> ``(N, 3 * n_bins)`` codes, axis-major, in plain torch."""
+    centres = (torch.arange(n_bins, dtype=points_world.dtype, device=points_world.device) + 0.5) / n_bins
+    phase = torch.remainder(points_world / period_m, 1.0)  # (N, 3)
+    d = (phase[..., None] - centres).abs()  # (N, 3, K)
+    d = torch.minimum(d, 1.0 - d)  # distance on the circle
+    code = torch.exp(-0.5 * (d * n_bins) ** 2)  # sigma = 1 / K
+    return code.flatten(-2)
+
+
+class _FastOneBlob(torch.autograd.Function):
+    """The C++ kernels as an autograd op, differentiable in the points (first order)."""
+
+    @staticmethod
+    def forward(ctx, points: Tensor, n_bins: int, period_m: float) -> Tensor:
+        ext = _ext.load_hash_grid_ext()
+        x = points.detach().contiguous()
+        out = torch.empty(x.shape[0], 3 * n_bins, dtype=x.dtype)
+        ext.one_blob_forward(_DTYPE_CODES[x.dtype], x.data_ptr(), out.data_ptr(), x.shape[0], n_bins, period_m,
+                             torch.get_num_threads())
+        ctx.save_for_backward(x)
+        ctx.n_bins, ctx.period_m = n_bins, period_m
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out: Tensor):
+        (x,) = ctx.saved_tensors
+        grad_out = grad_out.to(x.dtype).contiguous()
+        grad_x = torch.empty_like(x)
+        _ext.load_hash_grid_ext().one_blob_backward(_DTYPE_CODES[x.dtype], grad_out.data_ptr(), x.data_ptr(),
+                                                     grad_x.data_ptr(), x.shape[0], ctx.n_bins, ctx.period_m,
+                                                     torch.get_num_threads())
+        return grad_x, None, None
 
 
 class OneBlob(torch.nn.Module):
-    """``(N, 3)`` world points (metres) -> ``(N, 3 * n_bins)`` codes in [0, 1], differentiable in the points."""
+    """``(..., 3)`` world points (metres) -> ``(..., 3 * n_bins)`` codes in [0, 1], differentiable in the points.
 
-    def __init__(self, cfg: OneBlobConfig = OneBlobConfig()):
+    backend: ``"auto"``, ``"fast"`` (the C++ path, an error when it cannot run) or ``"reference"``, as
+        :class:`~.hash_grid.HashGrid`'s (the block map passes its ``grid_backend``).
+    """
+
+    def __init__(self, cfg: OneBlobConfig = OneBlobConfig(), backend: str = "auto"):
         super().__init__()
+        if backend not in BACKENDS:
+            raise ConfigError(f"OneBlob backend {backend!r}: expected one of {', '.join(BACKENDS)}")
         self.cfg = cfg
-        self.register_buffer("centres", (torch.arange(cfg.n_bins, dtype=torch.float32) + 0.5) / cfg.n_bins,
-                             persistent=False)
+        self.backend = backend
 
     @property
     def n_output_dims(self) -> int:
         return 3 * self.cfg.n_bins
 
-    def forward(self, points_world: torch.Tensor) -> torch.Tensor:
-        k = self.cfg.n_bins
-        phase = torch.remainder(points_world / self.cfg.period_m, 1.0)  # (N, 3)
-        d = (phase[..., None] - self.centres.to(points_world.dtype)).abs()  # (N, 3, K)
-        d = torch.minimum(d, 1.0 - d)  # distance on the circle
-        code = torch.exp(-0.5 * (d * k) ** 2)  # sigma = 1 / K
-        return code.flatten(-2)
+    def uses_fast_path(self, points: Tensor) -> bool:
+        """Whether :meth:`forward` on ``points`` runs the C++ path (may build the extension)."""
+        if self.backend == "reference":
+            return False
+        eligible = points.device.type == "cpu" and points.dtype in _DTYPE_CODES
+        if self.backend == "fast":
+            if not eligible:
+                raise ValueError(f"OneBlob backend 'fast' needs CPU float32/float64 points; got {points.dtype} "
+                                 f"on {points.device}")
+            reason = fast_path_unavailable_reason()
+            if reason is not None:
+                raise RuntimeError(f"OneBlob backend 'fast' requested but unavailable: {reason}")
+            return True
+        return eligible and fast_path_unavailable_reason() is None
+
+    def forward(self, points_world: Tensor) -> Tensor:
+        lead = points_world.shape[:-1]
+        x = points_world.reshape(-1, 3)
+        if self.uses_fast_path(x):
+            code = _FastOneBlob.apply(x, self.cfg.n_bins, float(self.cfg.period_m))
+        else:
+            code = encode_reference(x, self.cfg.n_bins, self.cfg.period_m)
+        return code.reshape(*lead, self.n_output_dims)

@@ -1,11 +1,12 @@
-// Multi-resolution hash encoding of a neural block: Python binding of the CPU kernels in
-// hash_grid_kernels.h (read that file's header for the maths, the layout and the work split).
+// The CPU kernels of the neural block map, bound to Python: the multi-resolution hash encoding
+// (hash_grid_kernels.h) and the one-blob encoding (one_blob_kernels.h); read those files' headers for the
+// maths, the layout and the work split.
 // Built on first use by neb_slam_core/scene/_ext.py (torch.utils.cpp_extension.load).
 //
 // The binding takes raw data pointers (Python ints from Tensor.data_ptr()) and sizes, and includes
 // pybind11 only, not torch/extension.h: that keeps the first-use compile at seconds instead of about a
-// minute. hash_grid.py checks devices, dtypes, shapes and contiguity and allocates the outputs before
-// calling in. The GIL is released while a kernel runs.
+// minute. hash_grid.py and one_blob.py check devices, dtypes, shapes and contiguity and allocate the
+// outputs before calling in. The GIL is released while a kernel runs.
 
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
@@ -16,6 +17,7 @@
 #include <vector>
 
 #include "hash_grid_kernels.h"
+#include "one_blob_kernels.h"
 
 namespace py = pybind11;
 using neb_hash_grid::Level;
@@ -139,13 +141,53 @@ void forward_blocks(int dtype, int64_t F, uintptr_t xw, uintptr_t centres, const
                                                       n_threads)));
 }
 
+#define NEB_DISPATCH_FLOAT(DTYPE, STATEMENT)                                                            \
+  if ((DTYPE) == 0) {                                                                                   \
+    using T = float;                                                                                    \
+    STATEMENT;                                                                                          \
+  } else if ((DTYPE) == 1) {                                                                            \
+    using T = double;                                                                                   \
+    STATEMENT;                                                                                          \
+  } else {                                                                                              \
+    throw std::invalid_argument("one_blob: dtype code must be 0 (float32) or 1 (float64)");            \
+  }
+
+void check_one_blob(int64_t n_bins, double period) {
+  if (n_bins < 1 || n_bins > 4096)
+    throw std::invalid_argument("one_blob: n_bins out of range: " + std::to_string(n_bins));
+  if (!(period > 0)) throw std::invalid_argument("one_blob: period must be positive");
+}
+
+// x (n, 3), out (n, 3 * n_bins): contiguous, same dtype, allocated by the caller.
+void one_blob_forward(int dtype, uintptr_t x, uintptr_t out, int64_t n, int64_t n_bins, double period,
+                      int n_threads) {
+  check_one_blob(n_bins, period);
+  if (n <= 0) return;
+  NEB_DISPATCH_FLOAT(dtype, (neb_one_blob::forward<T>(as_ptr<const T>(x), as_ptr<T>(out), n, static_cast<int>(n_bins),
+                                                      static_cast<T>(period), n_threads)));
+}
+
+// grad_out (n, 3 * n_bins), x (n, 3), grad_x (n, 3): contiguous, same dtype; grad_x fully written.
+void one_blob_backward(int dtype, uintptr_t grad_out, uintptr_t x, uintptr_t grad_x, int64_t n, int64_t n_bins,
+                       double period, int n_threads) {
+  check_one_blob(n_bins, period);
+  if (n <= 0) return;
+  NEB_DISPATCH_FLOAT(dtype, (neb_one_blob::backward<T>(as_ptr<const T>(grad_out), as_ptr<const T>(x),
+                                                       as_ptr<T>(grad_x), n, static_cast<int>(n_bins),
+                                                       static_cast<T>(period), n_threads)));
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "NeB-SLAM multi-resolution hash encoding: CPU forward and backward on raw buffers";
+  m.doc() = "NeB-SLAM hash-grid and one-blob encodings: CPU forward and backward on raw buffers";
   m.def("forward", &forward, "encode points: x (n, 3) -> out (n, L*F)", py::call_guard<py::gil_scoped_release>());
   m.def("forward_blocks", &forward_blocks, "features of world points blended over several blocks (no gradient)",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &backward, "gradients w.r.t. the points and/or the table",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("one_blob_forward", &one_blob_forward, "one-blob codes: x (n, 3) -> out (n, 3K)",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("one_blob_backward", &one_blob_backward, "one-blob gradient w.r.t. the points",
         py::call_guard<py::gil_scoped_release>());
 }

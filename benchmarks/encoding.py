@@ -1,5 +1,5 @@
-"""Speed of the encodings (the hot kernels): fast C++ paths vs plain-torch references (and, for the hash
-grid, vs a bare gather).
+"""Speed of the encodings and decoders (the hot kernels): fast C++ paths vs plain-torch references (and,
+for the hash grid, vs a bare gather).
 
 Measures, for one block with the paper's grid (16 levels x 2 features, T = 2^15), on 44,032 points
 (1024 rays x 43 samples, one tracking iteration) and 110,080 points (2560 rays x 43 samples, one mapping
@@ -12,7 +12,9 @@ iteration):
   the encoding's own rows (same locality).
 
 - the one-blob encoding of the same points in world metres: fast and reference, forward alone (tracking
-  queries) and forward+backward with the point gradient (mapping with keyframe poses optimised).
+  queries) and forward+backward with the point gradient (mapping with keyframe poses optimised);
+- the two decoders' forward pass without gradient (tracking, meshing) on as many points: the C++ kernel
+  and the torch modules.
 
 Points are like real rays (a camera inside the block, random pixels, 32 stratified samples between near
 and far plus 11 around the surface, sorted along each ray) and, for comparison, uniform in the block.
@@ -32,6 +34,7 @@ fast_fwd_bwd_points_ms (point grad), reference_fwd_bwd_ms, floor_gather_ms (rand
 floor_gather_local_ms, ratio_reference_over_fast, ratio_fast_fwd_over_floor, block_mb_t15 /
 block_mb_t14 (parameter MB, 10^6 bytes, per block), one_blob_fast_fwd_ms, one_blob_fast_fwd_bwd_ms,
 one_blob_reference_fwd_ms, one_blob_reference_fwd_bwd_ms, one_blob_ratio_fwd_bwd (reference over fast),
+decoder_fast_fwd_ms, decoder_reference_fwd_ms, decoder_ratio_fwd,
 plus the same timings per case under "cases".
 """
 
@@ -49,7 +52,8 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from neb_slam_core.config import HashGridConfig, OneBlobConfig
+from neb_slam_core.config import DecoderConfig, HashGridConfig, OneBlobConfig
+from neb_slam_core.scene.decoders import Decoders
 from neb_slam_core.scene.hash_grid import HashGrid, HashGridMeta, fast_path_unavailable_reason, level_cells
 from neb_slam_core.scene.one_blob import OneBlob
 
@@ -65,6 +69,8 @@ BLOB_FAST_FWD = "one-blob fast forward"
 BLOB_FAST_FWD_BWD = "one-blob fast fwd+bwd (point grad)"
 BLOB_REF_FWD = "one-blob reference forward"
 BLOB_REF_FWD_BWD = "one-blob reference fwd+bwd (point grad)"
+DECODER_FAST = "decoders fast forward (no grad)"
+DECODER_REF = "decoders reference forward (no grad)"
 
 
 def ray_points(n_rays: int, seed: int, edge_m: float = 5.0) -> torch.Tensor:
@@ -163,7 +169,26 @@ def run_case(label: str, x01: torch.Tensor, cfg: HashGridConfig, repeats: int, r
     timings[FLOOR_RANDOM] = median_ms(lambda: table.index_select(0, rand_rows), repeats)
     timings[FLOOR_LOCAL] = median_ms(lambda: table.index_select(0, local_rows), repeats)
     timings.update(one_blob_timings((x01 - 0.5) * 5.0, repeats))  # the same points in metres, block at 0
+    timings.update(decoder_timings(n, repeats))
     return CaseResult(label, n, timings)
+
+
+def decoder_timings(n: int, repeats: int) -> dict[str, tuple[float, float]]:
+    """Both decoders' forward without gradient on ``n`` points (48 one-blob + 32 grid inputs), fast and
+    reference, with the same weights."""
+    g = torch.Generator().manual_seed(4)
+    blob, feats = torch.rand(n, 48, generator=g), torch.randn(n, 32, generator=g)
+    torch.manual_seed(0)
+    fast = Decoders(48, 32, DecoderConfig(), backend="fast")
+    ref = Decoders(48, 32, DecoderConfig(), backend="reference")
+    ref.load_state_dict(fast.state_dict())
+    out = {}
+    for name, dec in ((DECODER_FAST, fast), (DECODER_REF, ref)):
+        def forward(dec=dec):
+            with torch.no_grad():
+                dec(blob, feats)
+        out[name] = median_ms(forward, repeats)
+    return out
 
 
 def one_blob_timings(points_world: torch.Tensor, repeats: int) -> dict[str, tuple[float, float]]:
@@ -238,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         ratios.append(f"fast fwd/floor = {fwd / t[FLOOR_RANDOM]:.2f} "
                       f"(vs encoding's rows {fwd / t[FLOOR_LOCAL]:.2f})")
         ratios.append(f"one-blob reference/fast fwd+bwd = {t[BLOB_REF_FWD_BWD] / t[BLOB_FAST_FWD_BWD]:.1f}x")
+        ratios.append(f"decoders reference/fast = {t[DECODER_REF] / t[DECODER_FAST]:.1f}x")
         print("  " + ", ".join(ratios))
 
     if args.json:
@@ -257,12 +283,15 @@ def main(argv: list[str] | None = None) -> int:
             "one_blob_fast_fwd_bwd_ms": head[BLOB_FAST_FWD_BWD][0],
             "one_blob_reference_fwd_ms": head[BLOB_REF_FWD][0],
             "one_blob_reference_fwd_bwd_ms": head[BLOB_REF_FWD_BWD][0],
+            "decoder_fast_fwd_ms": head[DECODER_FAST][0],
+            "decoder_reference_fwd_ms": head[DECODER_REF][0],
             "load_average_1min": os.getloadavg()[0],
             "cases": {r.label: {k: {"median_ms": v[0], "min_ms": v[1]} for k, v in r.timings.items()} for r in results},
         }
         summary["ratio_reference_over_fast"] = summary["reference_fwd_bwd_ms"] / summary["fast_fwd_bwd_ms"]
         summary["ratio_fast_fwd_over_floor"] = summary["fast_fwd_ms"] / summary["floor_gather_ms"]
         summary["one_blob_ratio_fwd_bwd"] = summary["one_blob_reference_fwd_bwd_ms"] / summary["one_blob_fast_fwd_bwd_ms"]
+        summary["decoder_ratio_fwd"] = summary["decoder_reference_fwd_ms"] / summary["decoder_fast_fwd_ms"]
         args.json.write_text(json.dumps(summary, indent=2) + "\n")
         print(f"\nwrote {args.json}")
     return 0

@@ -110,6 +110,29 @@ def load_hash_grid_ext() -> ModuleType:
         return _module
 
 
+def use_fast_path(backend: str, eligible: bool, owner: str, needs: str) -> bool:
+    """The backend rule of the modules with a C++ path (one-blob, decoders): ``"reference"`` never,
+    ``"fast"`` always (an error when the inputs are not ``eligible``, described by ``needs``, or the
+    extension is unavailable), ``"auto"`` when eligible and the extension loads."""
+    if backend == "reference":
+        return False
+    if backend == "fast":
+        if not eligible:
+            raise ValueError(f"{owner} backend 'fast' needs {needs}")
+        try:
+            load_hash_grid_ext()
+        except ExtensionUnavailable as exc:
+            raise RuntimeError(f"{owner} backend 'fast' requested but unavailable: {exc.reason}") from exc
+        return True
+    if not eligible:
+        return False
+    try:
+        load_hash_grid_ext()
+    except ExtensionUnavailable:
+        return False
+    return True
+
+
 def _build() -> ModuleType:
     from torch.utils import cpp_extension
 

@@ -60,7 +60,8 @@ class BlockMap(nn.Module):
         self.one_blob = OneBlob(blob_cfg, backend=grid_backend)
         with torch.random.fork_rng(devices=[]):  # decoder initialisation is part of the map's seed
             torch.manual_seed(self.seed)
-            self.decoders = Decoders(self.one_blob.n_output_dims, block_cfg.grid.n_output_dims, decoder_cfg)
+            self.decoders = Decoders(self.one_blob.n_output_dims, block_cfg.grid.n_output_dims, decoder_cfg,
+                                     backend=grid_backend)
 
     # ------------------------------------------------------------------ blocks
 

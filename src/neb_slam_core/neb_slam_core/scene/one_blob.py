@@ -27,7 +27,7 @@ from torch import Tensor
 from ..config import OneBlobConfig
 from ..errors import ConfigError
 from . import _ext
-from .hash_grid import BACKENDS, fast_path_unavailable_reason
+from .hash_grid import BACKENDS
 
 _DTYPE_CODES = {torch.float32: 0, torch.float64: 1}
 
@@ -88,18 +88,9 @@ class OneBlob(torch.nn.Module):
 
     def uses_fast_path(self, points: Tensor) -> bool:
         """Whether :meth:`forward` on ``points`` runs the C++ path (may build the extension)."""
-        if self.backend == "reference":
-            return False
         eligible = points.device.type == "cpu" and points.dtype in _DTYPE_CODES
-        if self.backend == "fast":
-            if not eligible:
-                raise ValueError(f"OneBlob backend 'fast' needs CPU float32/float64 points; got {points.dtype} "
-                                 f"on {points.device}")
-            reason = fast_path_unavailable_reason()
-            if reason is not None:
-                raise RuntimeError(f"OneBlob backend 'fast' requested but unavailable: {reason}")
-            return True
-        return eligible and fast_path_unavailable_reason() is None
+        return _ext.use_fast_path(self.backend, eligible, "OneBlob",
+                                  f"CPU float32/float64 points; got {points.dtype} on {points.device}")
 
     def forward(self, points_world: Tensor) -> Tensor:
         lead = points_world.shape[:-1]

@@ -1,11 +1,11 @@
 // The CPU kernels of the neural block map, bound to Python: the multi-resolution hash encoding
-// (hash_grid_kernels.h) and the one-blob encoding (one_blob_kernels.h); read those files' headers for the
-// maths, the layout and the work split.
+// (hash_grid_kernels.h), the one-blob encoding (one_blob_kernels.h) and the decoders' forward pass
+// (decoder_kernels.h); read those files' headers for the maths, the layout and the work split.
 // Built on first use by neb_slam_core/scene/_ext.py (torch.utils.cpp_extension.load).
 //
 // The binding takes raw data pointers (Python ints from Tensor.data_ptr()) and sizes, and includes
 // pybind11 only, not torch/extension.h: that keeps the first-use compile at seconds instead of about a
-// minute. hash_grid.py and one_blob.py check devices, dtypes, shapes and contiguity and allocate the
+// minute. hash_grid.py, one_blob.py and decoders.py check devices, dtypes, shapes and contiguity and allocate the
 // outputs before calling in. The GIL is released while a kernel runs.
 
 #include <pybind11/pybind11.h>
@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "hash_grid_kernels.h"
+#include "decoder_kernels.h"
 #include "one_blob_kernels.h"
 
 namespace py = pybind11;
@@ -177,10 +178,34 @@ void one_blob_backward(int dtype, uintptr_t grad_out, uintptr_t x, uintptr_t gra
                                                        static_cast<T>(period), n_threads)));
 }
 
+template <typename T>
+neb_decoders::Layer<T> layer(uintptr_t w, uintptr_t b, int64_t n_in, int64_t n_out) {
+  if (n_in < 1 || n_out < 1 || n_in > 4096 || n_out > 4096)
+    throw std::invalid_argument("decoders: layer sizes out of range");
+  return {as_ptr<const T>(w), as_ptr<const T>(b), static_cast<int>(n_in), static_cast<int>(n_out)};
+}
+
+// blob (n, n_blob), feat (n, n_feat), sdf (n), rgb (n, 3) or 0 (geometry only): contiguous, same dtype,
+// allocated by the caller. weights: the 8 addresses W1, b1, W2, b2 (geometry), W3, b3, W4, b4 (colour);
+// n_hidden, n_geo_out (1 + feature_dim), n_rgb: the layer sizes (torch.nn.Linear layout).
+void decoder_forward(int dtype, uintptr_t blob, uintptr_t feat, int64_t n, int64_t n_blob, int64_t n_feat,
+                     const std::vector<uintptr_t>& weights, int64_t n_hidden, int64_t n_geo_out, int64_t n_rgb,
+                     uintptr_t sdf, uintptr_t rgb, int n_threads) {
+  if (weights.size() != 8) throw std::invalid_argument("decoders: need the 8 weight and bias addresses");
+  if (n_geo_out < 1) throw std::invalid_argument("decoders: the geometry MLP needs an sdf output");
+  if (n <= 0) return;
+  const auto& w = weights;
+  NEB_DISPATCH_FLOAT(dtype, (neb_decoders::forward<T>(
+      as_ptr<const T>(blob), as_ptr<const T>(feat), static_cast<int>(n_blob), static_cast<int>(n_feat),
+      layer<T>(w[0], w[1], n_blob + n_feat, n_hidden), layer<T>(w[2], w[3], n_hidden, n_geo_out),
+      layer<T>(w[4], w[5], n_blob + n_geo_out - 1, n_hidden), layer<T>(w[6], w[7], n_hidden, n_rgb),
+      as_ptr<T>(sdf), rgb ? as_ptr<T>(rgb) : nullptr, n, n_threads)));
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "NeB-SLAM hash-grid and one-blob encodings: CPU forward and backward on raw buffers";
+  m.doc() = "NeB-SLAM hash-grid and one-blob encodings and decoders: CPU kernels on raw buffers";
   m.def("forward", &forward, "encode points: x (n, 3) -> out (n, L*F)", py::call_guard<py::gil_scoped_release>());
   m.def("forward_blocks", &forward_blocks, "features of world points blended over several blocks (no gradient)",
         py::call_guard<py::gil_scoped_release>());
@@ -189,5 +214,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("one_blob_forward", &one_blob_forward, "one-blob codes: x (n, 3) -> out (n, 3K)",
         py::call_guard<py::gil_scoped_release>());
   m.def("one_blob_backward", &one_blob_backward, "one-blob gradient w.r.t. the points",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("decoder_forward", &decoder_forward, "both decoders on (blob, feat) -> sdf, rgb (no gradient)",
         py::call_guard<py::gil_scoped_release>());
 }

@@ -1,0 +1,93 @@
+"""The decoders' C++ forward (no-gradient queries) against the torch modules it replaces there."""
+
+import pytest
+import torch
+
+from neb_slam_core.config import DecoderConfig
+from neb_slam_core.errors import ConfigError
+from neb_slam_core.scene import hash_grid as hg
+from neb_slam_core.scene.decoders import Decoders
+
+
+@pytest.fixture(scope="module")
+def fast_ext():
+    reason = hg.fast_path_unavailable_reason()
+    if reason is not None:
+        pytest.fail(f"the C++ extension did not build: {reason}")
+
+
+def _pair(n_blob: int, n_grid: int, cfg: DecoderConfig, dtype=torch.float32, seed: int = 0):
+    """Fast and reference decoders with the same weights, drawn larger than nn.Linear's initialisation so
+    that every unit's ReLU is on for some inputs and off for others and the colours are not all ~0.5."""
+    torch.manual_seed(seed)
+    ref = Decoders(n_blob, n_grid, cfg, backend="reference").to(dtype)
+    with torch.no_grad():
+        for p in ref.parameters():
+            p.normal_(0.0, 0.25)
+    fast = Decoders(n_blob, n_grid, cfg, backend="fast").to(dtype)
+    fast.load_state_dict(ref.state_dict())
+    return fast, ref
+
+
+def _inputs(n: int, n_blob: int, n_grid: int, dtype, seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, n_blob, generator=g, dtype=dtype), torch.randn(n, n_grid, generator=g, dtype=dtype)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 2e-5), (torch.float64, 1e-12)])
+@pytest.mark.parametrize("n", [1, 63, 64, 1000, 4097])  # short, exact and ragged last blocks of 64 points
+def test_fast_forward_matches_the_torch_modules(fast_ext, dtype, tol, n):
+    fast, ref = _pair(48, 32, DecoderConfig(), dtype)
+    blob, feats = _inputs(n, 48, 32, dtype)
+    with torch.no_grad():
+        assert fast.uses_fast_path(blob, feats) and not ref.uses_fast_path(blob, feats)
+        sdf_f, rgb_f = fast(blob, feats)
+        sdf_r, rgb_r = ref(blob, feats)
+        sdf_only = fast.sdf_only(blob, feats)
+    assert sdf_f.shape == (n,) and rgb_f.shape == (n, 3) and sdf_f.dtype == dtype
+    scale = float(sdf_r.abs().max()) + 1.0
+    assert (sdf_f - sdf_r).abs().max() <= tol * scale
+    assert (rgb_f - rgb_r).abs().max() <= tol
+    assert torch.equal(sdf_only, sdf_f)
+    if n >= 1000:  # inputs that exercise it: both signs of the sdf, colours spread over (0, 1)
+        assert 0.05 < float(rgb_r.std()) and 0.2 < float((sdf_r > 0).float().mean()) < 0.8
+
+
+def test_fast_forward_with_other_sizes(fast_ext):
+    cfg = DecoderConfig(hidden_dim=16, feature_dim=7)
+    fast, ref = _pair(30, 8, cfg, torch.float64, seed=2)
+    blob, feats = _inputs(333, 30, 8, torch.float64)
+    with torch.no_grad():
+        for a, b in zip(fast(blob, feats), ref(blob, feats)):
+            assert (a - b).abs().max() <= 1e-12
+
+
+def test_no_points(fast_ext):
+    fast, _ = _pair(48, 32, DecoderConfig())
+    blob, feats = _inputs(0, 48, 32, torch.float32)
+    with torch.no_grad():
+        sdf, rgb = fast(blob, feats)
+    assert sdf.shape == (0,) and rgb.shape == (0, 3)
+
+
+def test_a_wanted_gradient_takes_the_torch_modules(fast_ext):
+    fast, ref = _pair(48, 32, DecoderConfig())
+    blob, feats = _inputs(100, 48, 32, torch.float32)
+    feats.requires_grad_(True)
+    assert not fast.uses_fast_path(blob, feats)  # grad mode is on
+    sdf, rgb = fast(blob, feats)
+    (sdf.sum() + rgb.sum()).backward()
+    assert feats.grad is not None and float(feats.grad.abs().sum()) > 0
+    assert fast.geometry[0].weight.grad is not None
+
+
+def test_wrong_input_width_is_refused(fast_ext):
+    fast, _ = _pair(48, 32, DecoderConfig())
+    blob, feats = _inputs(10, 48, 16, torch.float32)
+    with torch.no_grad(), pytest.raises(ValueError, match="do not make the geometry MLP's 80 inputs"):
+        fast(blob, feats)
+
+
+def test_unknown_backend_is_refused():
+    with pytest.raises(ConfigError, match="Decoders backend 'gpu'"):
+        Decoders(48, 32, backend="gpu")

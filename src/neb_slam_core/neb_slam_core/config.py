@@ -311,12 +311,8 @@ class LoopConfig:
     a pose graph whose edges are the tracked relative poses and, beside them, each keyframe's depth
     registered (by the same objective and tests) against the ``register_neighbours`` keyframes before
     it (0: tracked edges only),
-    and the map re-optimised in two stages: up to ``map_iterations`` with the poses fixed, then
+    and the map re-optimised in two stages: ``map_iterations`` with the poses fixed, then
     ``joint_iterations`` of poses and map (the paper gives no counts; ours are measured, see README).
-    The first stage ends early, after at least ``map_min_iterations``, once a window of 25 steps lowers
-    the mean loss by less than ``map_stop_gain`` (relative) against the window before (0: always
-    ``map_iterations``): a small correction leaves the map close to right and flattens the loss within
-    a few windows, a large one keeps it falling longer.
     """
 
     enabled: bool = True
@@ -345,8 +341,6 @@ class LoopConfig:
     min_correction_deg: float = 0.5
     register_neighbours: int = 2
     map_iterations: int = 200
-    map_min_iterations: int = 50
-    map_stop_gain: float = 0.01
     joint_iterations: int = 50
 
 

@@ -453,8 +453,6 @@ RULES: dict[str, Any] = {
     "loop.min_correction_deg": _Num(0.0, lo_open=False),
     "loop.register_neighbours": _COUNT,
     "loop.map_iterations": _COUNT,
-    "loop.map_min_iterations": _COUNT,
-    "loop.map_stop_gain": _Num(0.0, 1.0, lo_open=False, hi_open=True),
     "loop.joint_iterations": _COUNT,
 }
 

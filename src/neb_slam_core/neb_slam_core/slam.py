@@ -398,8 +398,7 @@ class Backend:
         for block in self.block_map.blocks:
             block.keyframe_ids.sort()
         c = self.cfg.loop
-        first = self.mapper.optimise(c.map_iterations, optimise_poses=False, stop_gain=c.map_stop_gain,
-                                     min_iterations=c.map_min_iterations)
+        first = self.mapper.optimise(c.map_iterations, optimise_poses=False)
         second = self.mapper.optimise(c.joint_iterations, optimise_poses=True, fixed_until=start_id)
         return MappingStep(self.keyframes[len(self.keyframes) - 1], True, 1e3 * (time.perf_counter() - t0),
                            first.changed_block_ids | second.changed_block_ids)

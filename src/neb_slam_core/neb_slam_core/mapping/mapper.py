@@ -27,10 +27,6 @@ class MappingResult:
     changed_block_ids: set[int] = field(default_factory=set)
 
 
-#: steps per window of the map-only stage's convergence test (:meth:`Mapper.optimise`, ``stop_gain``)
-STOP_WINDOW = 25
-
-
 class Mapper:
     """Optimises the map (and, optionally, keyframe poses) on rays drawn from the keyframe store.
 
@@ -66,14 +62,10 @@ class Mapper:
         return {b.block_id for b in self.block_map.blocks if b.grid.table.grad is not None}
 
     def optimise(self, iterations: int | None = None, optimise_poses: bool | None = None,
-                 fixed_until: int = 0, stop_gain: float = 0.0, min_iterations: int = 0) -> MappingResult:
+                 fixed_until: int = 0) -> MappingResult:
         """``iterations`` joint steps over all keyframes plus the newest block's keyframes; keyframes
         ``0..fixed_until`` keep their poses (keyframe 0 anchors the world frame; a loop correction also
-        holds the keyframes up to the loop's older end).
-
-        With ``stop_gain`` > 0, ``iterations`` is a cap: once ``min_iterations`` steps are done, the call
-        ends after a window of :data:`STOP_WINDOW` steps whose mean loss is less than ``stop_gain``
-        (relative) below the previous window's, i.e. when the loss has flattened."""
+        holds the keyframes up to the loop's older end)."""
         iterations = self.cfg.iterations if iterations is None else iterations
         optimise_poses = self.cfg.optimise_poses if optimise_poses is None else optimise_poses
         kfs = self.keyframes
@@ -87,8 +79,7 @@ class Mapper:
         newest_kfs = self.block_map.blocks[-1].keyframe_ids if len(self.block_map) > 1 else []
         loss_value = float("nan")
         changed: set[int] = set()
-        losses: list[float] = []
-        for step in range(iterations):
+        for _ in range(iterations):
             idx = kfs.draw(self.cfg.n_rays, self.generator)
             if newest_kfs and self.cfg.n_rays_newest_block:
                 idx = torch.cat([idx, kfs.draw(self.cfg.n_rays_newest_block, self.generator, newest_kfs)])
@@ -106,20 +97,6 @@ class Mapper:
                 poses.delta.grad[:fixed_until + 1] = 0.0  # a fresh Adam moves no zero-gradient pose
                 pose_opt.step()
             loss_value = float(loss.total.detach())
-            losses.append(loss_value)
-            if stop_gain > 0 and _flattened(losses, min_iterations, stop_gain):
-                break
         if pose_opt is not None:
             kfs.set_poses(poses.numpy())
-        return MappingResult(len(losses), loss_value, changed)
-
-
-def _flattened(losses: list[float], min_iterations: int, stop_gain: float) -> bool:
-    """At the end of a window of :data:`STOP_WINDOW` steps, at least ``min_iterations`` in: whether its
-    mean loss is less than ``stop_gain`` (relative) below the previous window's."""
-    n = len(losses)
-    if n < max(min_iterations, 2 * STOP_WINDOW) or n % STOP_WINDOW:
-        return False
-    last = sum(losses[-STOP_WINDOW:]) / STOP_WINDOW
-    before = sum(losses[-2 * STOP_WINDOW:-STOP_WINDOW]) / STOP_WINDOW
-    return before - last < stop_gain * abs(before)
+        return MappingResult(iterations, loss_value, changed)

@@ -1,5 +1,6 @@
-"""The nodes' shared base: a worker thread that publishes after a signal shut the context down (a mapping
-step or loop re-optimisation still running) is not killed by rclpy's error."""
+"""The nodes' shared base: a worker thread that publishes after the context was shut down (by the replay's
+end or elsewhere in the process, while a mapping step or loop re-optimisation still runs) is not killed
+by rclpy's error."""
 
 from __future__ import annotations
 

@@ -86,6 +86,9 @@ def test_wrong_input_width_is_refused(fast_ext):
     blob, feats = _inputs(10, 48, 16, torch.float32)
     with torch.no_grad(), pytest.raises(ValueError, match="do not make the geometry MLP's 80 inputs"):
         fast(blob, feats)
+    blob, feats = _inputs(10, 40, 40, torch.float32)  # the right sum, split wrongly for the colour MLP
+    with torch.no_grad(), pytest.raises(ValueError, match="the colour MLP's 63"):
+        fast(blob, feats)
 
 
 def test_unknown_backend_is_refused():

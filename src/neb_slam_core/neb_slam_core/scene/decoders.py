@@ -84,9 +84,11 @@ class Decoders(nn.Module):
               with_colour: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
         blob, feats = blob.contiguous(), grid_features.contiguous()
         n = blob.shape[0]
-        if blob.shape[1] + feats.shape[1] != self.geometry[0].in_features or feats.shape[0] != n:
+        if (blob.shape[1] + feats.shape[1] != self.geometry[0].in_features or feats.shape[0] != n
+                or blob.shape[1] + self.cfg.feature_dim != self.colour[0].in_features):
             raise ValueError(f"Decoders: inputs {tuple(blob.shape)} and {tuple(feats.shape)} do not make the "
-                             f"geometry MLP's {self.geometry[0].in_features} inputs")
+                             f"geometry MLP's {self.geometry[0].in_features} inputs and the colour MLP's "
+                             f"{self.colour[0].in_features}")
         weights = [t.contiguous() for t in self._weights()]
         sdf = blob.new_empty(n)
         rgb = blob.new_empty(n, 3) if with_colour else None

@@ -1,4 +1,5 @@
-"""Build and load the C++/OpenMP hash-grid extension (``csrc/hash_grid.cpp``) on first use.
+"""Build and load the C++/OpenMP extension (``csrc/hash_grid.cpp``: the hash-grid, one-blob and decoder
+kernels) on first use.
 
 The extension is compiled with ``torch.utils.cpp_extension.load`` (ninja) the first time a process asks
 for it and cached on disk. The cache folder is named by a hash of everything that makes the binary: the

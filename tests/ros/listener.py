@@ -41,7 +41,10 @@ def main() -> None:
     node.create_subscription(MarkerArray, "mesh", on_mesh, state)
     print("listener ready", file=sys.stderr, flush=True)
     try:
-        rclpy.spin(node)
+        # in slices, as the nodes' own main does (neb_slam_ros._node_main): rclpy.spin can miss the
+        # SIGINT's wake-up of its wait set and never return (seen once in CI: the test's 30 s wait ran out)
+        while rclpy.ok():
+            rclpy.spin_once(node, timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     with open(sys.argv[1], "w") as f:

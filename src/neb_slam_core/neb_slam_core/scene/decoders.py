@@ -21,9 +21,7 @@ from torch import nn
 from ..config import DecoderConfig
 from ..errors import ConfigError
 from . import _ext
-from .hash_grid import BACKENDS
-
-_DTYPE_CODES = {torch.float32: 0, torch.float64: 1}
+from .hash_grid import BACKENDS, DTYPE_CODES
 
 
 def _mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
@@ -73,7 +71,7 @@ class Decoders(nn.Module):
         if torch.is_grad_enabled():
             return False
         dtype = self.geometry[0].weight.dtype
-        eligible = (dtype in _DTYPE_CODES and blob.dtype == grid_features.dtype == dtype
+        eligible = (dtype in DTYPE_CODES and blob.dtype == grid_features.dtype == dtype
                     and blob.device.type == grid_features.device.type == self.geometry[0].weight.device.type == "cpu"
                     and blob.dim() == grid_features.dim() == 2)
         return _ext.use_fast_path(self.backend, eligible, "Decoders",
@@ -93,7 +91,7 @@ class Decoders(nn.Module):
         sdf = blob.new_empty(n)
         rgb = blob.new_empty(n, 3) if with_colour else None
         _ext.load_hash_grid_ext().decoder_forward(
-            _DTYPE_CODES[blob.dtype], blob.data_ptr(), feats.data_ptr(), n, blob.shape[1], feats.shape[1],
+            DTYPE_CODES[blob.dtype], blob.data_ptr(), feats.data_ptr(), n, blob.shape[1], feats.shape[1],
             [t.data_ptr() for t in weights], self.cfg.hidden_dim, 1 + self.cfg.feature_dim, 3,
             sdf.data_ptr(), 0 if rgb is None else rgb.data_ptr(), torch.get_num_threads())
         return sdf, rgb

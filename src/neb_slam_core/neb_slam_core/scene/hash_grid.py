@@ -198,7 +198,7 @@ def encode_reference(table: Tensor, x01: Tensor, meta: HashGridMeta) -> Tensor:
 # ---------------------------------------------------------------------------------------------- fast path
 
 
-_DTYPE_CODES = {torch.float32: 0, torch.float64: 1}
+DTYPE_CODES = {torch.float32: 0, torch.float64: 1}
 
 
 def _ptr(t: Tensor | None) -> int:
@@ -234,7 +234,7 @@ class _FastHashEncode(torch.autograd.Function):
         n_levels = resolutions.numel()
         _check_layout(table_c, offsets, resolutions, dense, x01.dtype)
         out = torch.empty(n, n_levels * n_features, dtype=x01.dtype)
-        ext.forward(_DTYPE_CODES[x01.dtype], n_features, _ptr(x01), _ptr(table_c), _ptr(out), n, n_levels,
+        ext.forward(DTYPE_CODES[x01.dtype], n_features, _ptr(x01), _ptr(table_c), _ptr(out), n, n_levels,
                     _ptr(offsets), _ptr(resolutions), _ptr(dense), table_size, torch.get_num_threads())
         ctx.save_for_backward(x01, table_c, offsets, resolutions, dense)
         ctx.table_size = table_size
@@ -251,7 +251,7 @@ class _FastHashEncode(torch.autograd.Function):
         grad_out = grad_out.to(x01.dtype).contiguous()
         grad_x = torch.empty_like(x01) if need_x else None
         grad_table = torch.zeros_like(table) if need_table else None  # the kernel adds into it
-        ext.backward(_DTYPE_CODES[x01.dtype], table.shape[1], _ptr(grad_out), _ptr(x01), _ptr(table), _ptr(grad_x),
+        ext.backward(DTYPE_CODES[x01.dtype], table.shape[1], _ptr(grad_out), _ptr(x01), _ptr(table), _ptr(grad_x),
                      _ptr(grad_table), x01.shape[0], resolutions.numel(), _ptr(offsets), _ptr(resolutions),
                      _ptr(dense), ctx.table_size, torch.get_num_threads())
         return grad_x, grad_table, None, None, None, None
@@ -288,7 +288,7 @@ def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"
         raise ValueError("hash grid fast path: the blocks' tables differ in shape or dtype")
     out = torch.empty(x.shape[0], meta.n_output_dims, dtype=x.dtype)
     valid = torch.empty(x.shape[0], dtype=torch.bool)
-    ext.forward_blocks(_DTYPE_CODES[x.dtype], meta.n_features, _ptr(x), _ptr(c), [_ptr(t) for t in tables],
+    ext.forward_blocks(DTYPE_CODES[x.dtype], meta.n_features, _ptr(x), _ptr(c), [_ptr(t) for t in tables],
                        float(edge_m), float(blend_m), _ptr(out), _ptr(valid), x.shape[0], meta.n_levels,
                        _ptr(g0.level_offsets), _ptr(g0.level_resolutions), _ptr(g0.level_is_dense),
                        meta.table_size, torch.get_num_threads())

@@ -27,9 +27,7 @@ from torch import Tensor
 from ..config import OneBlobConfig
 from ..errors import ConfigError
 from . import _ext
-from .hash_grid import BACKENDS
-
-_DTYPE_CODES = {torch.float32: 0, torch.float64: 1}
+from .hash_grid import BACKENDS, DTYPE_CODES
 
 
 def encode_reference(points_world: Tensor, n_bins: int, period_m: float) -> Tensor:
@@ -50,7 +48,7 @@ class _FastOneBlob(torch.autograd.Function):
         ext = _ext.load_hash_grid_ext()
         x = points.detach().contiguous()
         out = torch.empty(x.shape[0], 3 * n_bins, dtype=x.dtype)
-        ext.one_blob_forward(_DTYPE_CODES[x.dtype], x.data_ptr(), out.data_ptr(), x.shape[0], n_bins, period_m,
+        ext.one_blob_forward(DTYPE_CODES[x.dtype], x.data_ptr(), out.data_ptr(), x.shape[0], n_bins, period_m,
                              torch.get_num_threads())
         ctx.save_for_backward(x)
         ctx.n_bins, ctx.period_m = n_bins, period_m
@@ -62,7 +60,7 @@ class _FastOneBlob(torch.autograd.Function):
         (x,) = ctx.saved_tensors
         grad_out = grad_out.to(x.dtype).contiguous()
         grad_x = torch.empty_like(x)
-        _ext.load_hash_grid_ext().one_blob_backward(_DTYPE_CODES[x.dtype], grad_out.data_ptr(), x.data_ptr(),
+        _ext.load_hash_grid_ext().one_blob_backward(DTYPE_CODES[x.dtype], grad_out.data_ptr(), x.data_ptr(),
                                                      grad_x.data_ptr(), x.shape[0], ctx.n_bins, ctx.period_m,
                                                      torch.get_num_threads())
         return grad_x, None, None
@@ -88,7 +86,7 @@ class OneBlob(torch.nn.Module):
 
     def uses_fast_path(self, points: Tensor) -> bool:
         """Whether :meth:`forward` on ``points`` runs the C++ path (may build the extension)."""
-        eligible = points.device.type == "cpu" and points.dtype in _DTYPE_CODES
+        eligible = points.device.type == "cpu" and points.dtype in DTYPE_CODES
         return _ext.use_fast_path(self.backend, eligible, "OneBlob",
                                   f"CPU float32/float64 points; got {points.dtype} on {points.device}")
 

@@ -4,7 +4,7 @@ import torch
 
 from neb_slam_core.config import SamplingConfig
 from neb_slam_core.render.sampling import sample_depths
-from neb_slam_core.render.volume import composite, sdf_weights
+from neb_slam_core.render.volume import composite, sdf_weight_slopes, sdf_weights
 
 
 def test_weights_closed_form():
@@ -45,6 +45,31 @@ def test_sharpness_and_second_surface_dropped():
     z = torch.tensor([[1.0, 1.05, 3.0, 3.05]])
     w = sdf_weights(sdf, z, torch.ones(1, 4, dtype=torch.bool), tr)
     assert torch.allclose(w, torch.tensor([[0.5, 0.5, 0.0, 0.0]]))
+
+
+def test_weight_slopes_equal_autograd_of_the_composites():
+    """``d (sum_l w_il v_il) / d sdf_ij = a_ij (v_ij - sum_l w_il v_il)`` for depth and each colour channel,
+    against autograd through :func:`sdf_weights` (float64), on rays with a surface, two surfaces (the
+    kept mask cuts the second), invalid samples and no valid sample."""
+    g = torch.Generator().manual_seed(0)
+    r, s, tr = 6, 12, 0.1
+    z = torch.sort(torch.rand(r, s, generator=g, dtype=torch.float64) * 4 + 0.5, dim=1).values
+    sdf = (2.0 - z) / tr + 0.3 * torch.randn(r, s, generator=g, dtype=torch.float64)
+    sdf[1, 8:] = (3.5 - z[1, 8:]) / tr  # a second surface behind the first
+    valid = torch.rand(r, s, generator=g) > 0.2
+    valid[2] = False
+    rgb = torch.rand(r, s, 3, generator=g, dtype=torch.float64)
+    leaf = sdf.clone().requires_grad_(True)
+    w_ref = sdf_weights(leaf, z, valid, tr)
+    depth, colour = composite(w_ref, z, rgb)
+    w, a = sdf_weight_slopes(sdf, z, valid, tr)
+    torch.testing.assert_close(w, w_ref.detach(), rtol=0, atol=1e-15)
+    for value, per_sample in [(depth, z)] + [(colour[:, k], rgb[..., k]) for k in range(3)]:
+        (reference,) = torch.autograd.grad(value.sum(), leaf, retain_graph=True)
+        closed = a * (per_sample - value.detach()[:, None])
+        torch.testing.assert_close(closed, reference, rtol=1e-10, atol=1e-12)
+    assert torch.equal(a[2], torch.zeros(s, dtype=torch.float64))
+    assert a.abs().max() > 1e-3  # the comparison is not between zeros
 
 
 def test_sample_depths_ranges_and_order():

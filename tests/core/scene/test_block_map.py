@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 
 from neb_slam_core.config import BlockConfig, HashGridConfig
@@ -212,3 +213,30 @@ def test_the_kernel_is_not_used_when_a_gradient_is_wanted():
     feats, _ = m.grid_features(p)
     feats.sum().backward()
     assert all(b.grid.table.grad is not None and b.grid.table.grad.abs().sum() > 0 for b in m.blocks)
+
+
+def test_a_map_loads_its_cpp_kernels_when_made_unless_it_uses_the_reference(monkeypatch):
+    """The one-time build of the C++ extension happens when the map is made (not inside the first frame's
+    timing); a reference-backend map never asks for it, and a failed build leaves "auto" to fall back."""
+    from neb_slam_core.scene import _ext, hash_grid
+
+    builds = []
+
+    def broken_build():
+        builds.append(1)
+        raise RuntimeError("no C++ compiler (simulated)")
+
+    monkeypatch.setattr(_ext, "_module", None)
+    monkeypatch.setattr(_ext, "_failure", None)
+    monkeypatch.setattr(_ext, "_build", broken_build)
+    monkeypatch.setattr(hash_grid, "_fallback_warned", False)
+    BlockMap(BlockConfig(grid=SMALL_GRID), grid_backend="reference")
+    assert builds == []
+    m = BlockMap(BlockConfig(grid=SMALL_GRID), grid_backend="auto")
+    assert builds == [1]
+    m.add_block([0.0, 0.0, 0.0])
+    BlockMap(BlockConfig(grid=SMALL_GRID), grid_backend="auto")  # the failure is remembered: no second build
+    assert builds == [1]
+    with pytest.warns(RuntimeWarning, match="simulated"):  # the hash grid's one fallback warning
+        q = m.query(torch.zeros(4, 3))
+    assert q.valid.all()

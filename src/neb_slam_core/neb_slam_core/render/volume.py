@@ -48,8 +48,17 @@ def sdf_weights(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, 
     Returns:
         ``(R, S)`` weights summing to 1 on rays with a valid sample (0 elsewhere).
     """
+    u, _ = _bells(sdf, z, sample_valid, truncation_m)
+    return u / (u.sum(dim=-1, keepdim=True) + eps)
+
+
+def _bells(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor,
+           truncation_m: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The unnormalised weights ``u`` of :func:`sdf_weights` (the bell times the valid and kept masks) and
+    ``sigmoid(sdf / tr)``, which their slope needs."""
     x = sdf / truncation_m
-    w = torch.sigmoid(x) * torch.sigmoid(-x) * sample_valid.to(sdf.dtype)
+    sig = torch.sigmoid(x)
+    u = sig * torch.sigmoid(-x) * sample_valid.to(sdf.dtype)
     with torch.no_grad():
         s = torch.where(sample_valid, sdf, torch.ones_like(sdf))
         crossing = (s[:, :-1] > 0) & (s[:, 1:] <= 0)
@@ -57,8 +66,26 @@ def sdf_weights(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, 
         first = torch.argmax(crossing.to(torch.int8), dim=1) + 1  # first sample at or behind the surface
         z_surface = torch.gather(z, 1, first[:, None])[:, 0]
         keep = ~has[:, None] | (z <= (z_surface + truncation_m)[:, None])
-    w = w * keep.to(w.dtype)
-    return w / (w.sum(dim=-1, keepdim=True) + eps)
+    return u * keep.to(u.dtype), sig
+
+
+@torch.no_grad()
+def sdf_weight_slopes(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, truncation_m: float,
+                      eps: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor]:
+    """The weights of :func:`sdf_weights` and how any composite of them moves with the SDF, in closed form.
+
+    For a per-sample quantity ``v`` that does not depend on the SDF (depth, colour), the composite
+    ``V_i = sum_l w_il v_il`` has ``dV_i / d sdf_ij = a_ij (v_ij - V_i)``: with ``u`` the unnormalised
+    weights and ``U_i = sum_l u_il + eps``, ``w = u / U`` gives ``dV_i / d u_ij = (v_ij - V_i) / U_i``, and the
+    bell ``sigmoid(x) sigmoid(-x)`` (``x = sdf / tr``) has slope ``u (1 - 2 sigmoid(x)) / tr`` in ``sdf``. The
+    kept mask is held fixed, as autograd holds it. One pass instead of a backward pass per composite.
+
+    Returns:
+        ``(R, S)`` weights ``w`` and slopes ``a``.
+    """
+    u, sig = _bells(sdf, z, sample_valid, truncation_m)
+    norm = u.sum(dim=-1, keepdim=True) + eps
+    return u / norm, u * (1.0 - 2.0 * sig) / (truncation_m * norm)
 
 
 def observed_rays(sample_valid: torch.Tensor, z: torch.Tensor, depth_obs: torch.Tensor,

@@ -111,6 +111,19 @@ def load_hash_grid_ext() -> ModuleType:
         return _module
 
 
+def prepare(backend: str) -> None:
+    """Build (first use) or load the extension now unless ``backend`` is ``"reference"``: a block map does
+    this when it is made, so that a one-time compile lands neither inside its first frame's timing nor on
+    a node's first message. A failure is only remembered here; the modules report it where they would use
+    the extension (``"auto"`` falls back, ``"fast"`` raises)."""
+    if backend == "reference":
+        return
+    try:
+        load_hash_grid_ext()
+    except ExtensionUnavailable:
+        pass
+
+
 def use_fast_path(backend: str, eligible: bool, owner: str, needs: str) -> bool:
     """The backend rule of the modules with a C++ path (one-blob, decoders): ``"reference"`` never,
     ``"fast"`` always (an error when the inputs are not ``eligible``, described by ``needs``, or the

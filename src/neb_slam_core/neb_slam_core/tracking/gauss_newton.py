@@ -18,8 +18,12 @@ The Jacobian of every residual in the 6 pose parameters is built without 6 passe
   of the four backward passes (SDF and three colours) that autograd would need;
 * a sample's point moves with the pose as ``dp = domega x (p - t) + dt`` (the parameterisation of
   :mod:`neb_slam_core.geometry.lie`: ``R = exp(omega) R0``, ``t = t0 + dt``);
-* a ray's rendered depth and colour depend only on that ray's samples, so one backward pass of the
-  summed render through the (small) compositing graph gives every ``d depth_i / d sdf_ij``.
+* a ray's rendered depth and colour depend only on that ray's samples, through the normalised
+  rendering weights, whose slopes have a closed form (:func:`~neb_slam_core.render.volume.sdf_weight_slopes`):
+  ``d depth_i / d sdf_ij = a_ij (z_ij - depth_i)``, and likewise per colour channel.
+
+Only the samples that move the objective (see :func:`evaluate_pose`) get a spatial gradient, and the
+Jacobians are assembled on those samples alone, then summed per ray.
 
 Torch has no batched per-residual Jacobian for a custom C++ autograd function (no forward mode in the
 hash-grid kernel), hence this chain rule by hand; :func:`normal_equations` is checked against autograd's
@@ -37,7 +41,7 @@ from ..config import RenderConfig
 from ..geometry.lie import compose_delta
 from ..render.rays import PixelSamples
 from ..render.renderer import query_samples
-from ..render.volume import observed_rays, sdf_weights
+from ..render.volume import composite, observed_rays, sdf_weight_slopes
 from ..scene.block_map import BlockMap
 
 
@@ -57,12 +61,18 @@ class PoseEvaluation:
     depth_residual_m: float
     T: torch.Tensor
     points: torch.Tensor  # (R, S, 3)
-    sdf_leaf: torch.Tensor  # (R, S), with the compositing graph to depth and colour
+    z: torch.Tensor  # (R, S) sample depths
+    sample_rgb: torch.Tensor  # (R, S, 3) the samples' colours
     weights: torch.Tensor  # (R, S) rendering weights
-    depth: torch.Tensor
-    colour: torch.Tensor
+    slopes: torch.Tensor  # (R, S) d composite / d sdf factors (:func:`sdf_weight_slopes`)
+    depth: torch.Tensor  # (R,) rendered
+    colour: torch.Tensor  # (R, 3) rendered
     active: torch.Tensor  # (R, S) samples whose spatial gradient enters the model
     residuals: dict[str, tuple[torch.Tensor, torch.Tensor]]  # term -> (residuals, per-residual weights)
+
+
+#: the terms with one residual per sample (R, S); the others have one per ray (and colour channel)
+SAMPLE_TERMS = ("sdf", "free_space")
 
 
 def _pose_jacobian(grad_p: torch.Tensor, lever: torch.Tensor) -> torch.Tensor:
@@ -129,14 +139,12 @@ def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.nda
         sample = query_samples(block_map, points, z, pixels.depth_m, cfg.sampling, block_ids)
     valid = sample.valid.reshape(r_count, s_count)
 
-    # rendering, differentiable in the samples' SDF (colours enter linearly)
-    s = sample.sdf.reshape(r_count, s_count).requires_grad_(True)
+    # rendering, with the weights' slopes in the samples' SDF (colours enter linearly)
+    sd = sample.sdf.reshape(r_count, s_count)
     c = sample.rgb.reshape(r_count, s_count, 3)
     tr = cfg.truncation_m
-    with torch.enable_grad():
-        w = sdf_weights(s, z, valid, tr)
-        depth = (w * z).sum(dim=-1)
-        colour = (w[..., None] * c).sum(dim=-2)
+    w, slopes = sdf_weight_slopes(sd, z, valid, tr)
+    depth, colour = composite(w, z, c)
 
     obs_d = pixels.depth_m
     ray_valid = observed_rays(valid, z, obs_d, tr)
@@ -145,11 +153,10 @@ def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.nda
     band = valid & (obs_d > 0)[:, None] & (obs_sdf.abs() <= tr)
     front = valid & (obs_d > 0)[:, None] & (obs_sdf > tr)
     lw = cfg.weights
-    sd = s.detach()
     w_c = (lw.colour / (3.0 * ray_valid.sum().clamp(min=1))) * ray_valid.to(torch.float32)  # per channel
     residuals = {
-        "colour": ((colour - pixels.rgb).detach(), w_c[:, None].expand(-1, 3)),
-        "depth": ((depth - obs_d).detach(), (lw.depth / m_d.sum().clamp(min=1)) * m_d.to(torch.float32)),
+        "colour": (colour - pixels.rgb, w_c[:, None].expand(-1, 3)),
+        "depth": (depth - obs_d, (lw.depth / m_d.sum().clamp(min=1)) * m_d.to(torch.float32)),
         "sdf": (tr * sd - obs_sdf, _per_sample_weights(band, lw.sdf)),  # metres
         "free_space": (sd - 1.0, _per_sample_weights(front, lw.free_space)),  # truncation units
     }
@@ -157,9 +164,9 @@ def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.nda
     # Spatial gradients are needed only where a sample moves the objective: inside the band, carrying
     # rendering weight, or in violated free space. Elsewhere a residual's Jacobian is ~0; leaving those
     # samples out only coarsens the Gauss-Newton matrix, never the cost a step is judged by.
-    active = band | (valid & (w.detach() > 1e-4)) | (front & (residuals["free_space"][0].abs() > 1e-2))
+    active = band | (valid & (w > 1e-4)) | (front & (residuals["free_space"][0].abs() > 1e-2))
     resid = float(residuals["depth"][0][m_d].abs().median()) if bool(m_d.any()) else float("inf")
-    return PoseEvaluation(cost, int(ray_valid.sum()), resid, T, points.detach(), s, w, depth, colour, active,
+    return PoseEvaluation(cost, int(ray_valid.sum()), resid, T, points, z, c, w, slopes, depth, colour, active,
                           residuals)
 
 
@@ -168,27 +175,29 @@ def normal_equations(ev: PoseEvaluation, block_map: BlockMap, block_ids: list[in
     """Gauss-Newton system at ``ev``: ``H = J^T W J`` (6, 6) and ``g = J^T W r`` (6,), float64; ``2 g`` is
     the objective's gradient in (omega, dt). ``gradients``: how the samples' spatial gradients are
     computed (:func:`spatial_gradients`, or its autograd reference)."""
-    r_count, s_count = ev.active.shape
-    s = ev.sdf_leaf
-    d_depth = torch.autograd.grad(ev.depth.sum(), s, retain_graph=True)[0]  # (R, S) d depth_i / d sdf_ij
-    d_colour = [torch.autograd.grad(ev.colour[:, k].sum(), s, retain_graph=True)[0] for k in range(3)]
-    p_act = ev.points[ev.active]
-    grads = gradients(block_map, p_act, block_ids)
-    lever = p_act - ev.T[:3, 3]
-    jac = ev.points.new_zeros(4, r_count, s_count, 6)  # d (sdf, r, g, b)_ij / d pose
-    for k in range(4):
-        jac[k][ev.active] = _pose_jacobian(grads[k], lever)
+    r_count = ev.active.shape[0]
+    ray, sample = ev.active.nonzero(as_tuple=True)  # the active samples, by ray
+    p_act = ev.points[ray, sample]
+    grads = gradients(block_map, p_act, block_ids)  # (4, A, 3)
+    jac = _pose_jacobian(grads, (p_act - ev.T[:3, 3]).expand_as(grads))  # (4, A, 6): d (sdf, r, g, b) / d pose
     A = jac[0]
-    w = ev.weights.detach()[..., None]
+    a = ev.slopes[ray, sample]
+    # per ray: d depth_i = sum_j a_ij (z_ij - depth_i) d sdf_ij; per colour channel likewise, plus the
+    # samples' own colour change w_ij d c_ij
+    d_depth = (a * (ev.z[ray, sample] - ev.depth[ray]))[:, None] * A
+    d_colour = (a[:, None] * (ev.sample_rgb[ray, sample] - ev.colour[ray])).T[..., None] * A \
+        + ev.weights[ray, sample][None, :, None] * jac[1:]  # (3, A, 6)
     jacobians = {
-        "colour": torch.stack([(d_colour[k][..., None] * A + w * jac[k + 1]).sum(dim=1) for k in range(3)], dim=1),
-        "depth": (d_depth[..., None] * A).sum(dim=1),
-        "sdf": truncation_m * A,
+        "colour": A.new_zeros(r_count, 3, 6).index_add_(0, ray, d_colour.permute(1, 0, 2)),
+        "depth": A.new_zeros(r_count, 6).index_add_(0, ray, d_depth),
+        "sdf": truncation_m * A,  # rows of the active samples: elsewhere the Jacobian is taken as 0
         "free_space": A,
     }
-    H = ev.points.new_zeros(6, 6)
-    g = ev.points.new_zeros(6)
+    H = A.new_zeros(6, 6)
+    g = A.new_zeros(6)
     for term, (r, wt) in ev.residuals.items():
+        if term in SAMPLE_TERMS:
+            r, wt = r[ray, sample], wt[ray, sample]
         J = jacobians[term].reshape(-1, 6)
         Jw = J * wt.reshape(-1, 1)
         H += Jw.T @ J

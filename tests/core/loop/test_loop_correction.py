@@ -59,6 +59,39 @@ def test_residuals_vanish_at_the_true_pose_and_not_elsewhere():
     assert np.sqrt((r2[ok2] ** 2).sum(axis=1).mean()) > 0.5
 
 
+def test_residual_jacobian_equals_central_differences():
+    """The analytic Jacobian in the pose perturbation (phi, delta) against central differences of the
+    residuals (steps of 1e-7: far inside a depth pixel's bilinear cell for almost every pixel)."""
+    from neb_slam_core.geometry.se3 import so3_left_jacobian
+
+    px, d = current_pixels(300)
+    T = pose([0.4, -0.6, 0.3], [0.01, -0.02, 0.015]) @ T_TRUE
+    r, ok, J = reprojection_residuals(T, px, d, K, views(2), jacobian=True)
+    h = 1e-7
+    numeric = np.zeros_like(J)
+    for i in range(6):
+        step = np.zeros(6)
+        step[i] = h
+        moved = [T.copy(), T.copy()]
+        for sign, M in zip((1.0, -1.0), moved):
+            M[:3, :3] = Rotation.from_rotvec(sign * step[:3]).as_matrix() @ T[:3, :3]
+            M[:3, 3] += sign * step[3:]
+        (r_plus, ok_plus), (r_minus, ok_minus) = (reprojection_residuals(M, px, d, K, views(2)) for M in moved)
+        numeric[..., i] = (r_plus - r_minus) / (2 * h)
+        ok &= ok_plus & ok_minus
+    scale = np.abs(numeric[ok]).max(axis=(0, 1))  # per pose component
+    err = np.abs(J[ok] - numeric[ok]) / scale
+    # a few pixels' steps cross a bilinear cell face, where the slope jumps
+    assert np.mean(err.max(axis=(1, 2)) < 1e-6) > 0.99 and ok.sum() > 400
+    assert np.all(J[~ok] == 0)
+    # the left Jacobian: exp(w + d) = exp(J_l d) exp(w) to second order
+    w, dw = np.array([0.3, -0.5, 0.8]), 1e-6 * np.array([1.0, 2.0, -1.5])
+    lhs = Rotation.from_rotvec(w + dw).as_matrix()
+    rhs = Rotation.from_rotvec(so3_left_jacobian(w) @ dw).as_matrix() @ Rotation.from_rotvec(w).as_matrix()
+    assert np.abs(lhs - rhs).max() < 1e-11
+    np.testing.assert_allclose(so3_left_jacobian(np.array([1e-6, 0.0, 0.0])), np.eye(3), atol=1e-6)
+
+
 @pytest.mark.parametrize("stride", [1, 2])
 def test_fit_recovers_the_pose_from_a_perturbed_start(stride):
     px, d = current_pixels()

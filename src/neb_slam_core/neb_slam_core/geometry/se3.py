@@ -32,6 +32,30 @@ def invert(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` cross-product matrices of ``(..., 3)`` vectors: ``skew(a) @ b = a x b``."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` left Jacobian of SO(3) at the rotation vector ``omega``: ``exp(omega + d) = exp(J d) exp(omega)``
+    to first order in ``d``; ``J = I + (1 - cos t) / t^2 W + (t - sin t) / t^3 W^2`` with ``W = skew(omega)``,
+    ``t = |omega|`` (its series below 1e-4 rad, where the closed form loses digits)."""
+    omega = np.asarray(omega, dtype=np.float64)
+    t = float(np.linalg.norm(omega))
+    W = skew(omega)
+    if t < 1e-4:
+        a, b = 0.5 - t * t / 24.0, 1.0 / 6.0 - t * t / 120.0
+    else:
+        a, b = (1.0 - np.cos(t)) / t ** 2, (t - np.sin(t)) / t ** 3
+    return np.eye(3) + a * W + b * (W @ W)
+
+
 def interpolate_correction(delta: np.ndarray, pivot: np.ndarray, w) -> np.ndarray:
     """The share ``w`` in [0, 1] of the rigid correction ``delta`` (4x4): rotation ``exp(w log R)``
     about ``pivot`` (3,) plus ``w`` times the displacement of ``pivot``. ``w = 1`` gives ``delta``.

@@ -94,3 +94,34 @@ def test_wrong_input_width_is_refused(fast_ext):
 def test_unknown_backend_is_refused():
     with pytest.raises(ConfigError, match="Decoders backend 'gpu'"):
         Decoders(48, 32, backend="gpu")
+
+
+def test_torch_path_equals_the_mlps_on_the_concatenated_inputs_with_gradients():
+    """The torch path applies each first layer's two weight blocks to the one-blob code and the other input
+    separately; that is the modules on the concatenation, values and every gradient (float64)."""
+    torch.manual_seed(0)
+    dec = Decoders(48, 32, DecoderConfig(), backend="reference").double()
+    with torch.no_grad():
+        for p in dec.parameters():
+            p.normal_(0.0, 0.25)
+    blob, feats = _inputs(300, 48, 32, torch.float64)
+    blob.requires_grad_(True)
+    feats.requires_grad_(True)
+
+    def by_concatenation():
+        h = dec.geometry(torch.cat([blob, feats], dim=-1))
+        return h[:, 0], torch.sigmoid(dec.colour(torch.cat([blob, h[:, 1:]], dim=-1)))
+
+    results = []
+    for fn in (lambda: dec(blob, feats), by_concatenation):
+        sdf, rgb = fn()
+        loss = (sdf * torch.linspace(-1, 1, 300, dtype=torch.float64)).sum() + (rgb ** 2).sum()
+        grads = torch.autograd.grad(loss, [blob, feats, *dec.parameters()])
+        results.append((sdf.detach(), rgb.detach(), grads))
+    (sdf, rgb, grads), (sdf_ref, rgb_ref, grads_ref) = results
+    torch.testing.assert_close(sdf, sdf_ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=1e-12)
+    for g, g_ref in zip(grads, grads_ref):
+        torch.testing.assert_close(g, g_ref, rtol=0, atol=1e-11)
+    assert 0.2 < float((sdf_ref > 0).double().mean()) < 0.8  # the ReLUs and signs are exercised
+    torch.testing.assert_close(dec.sdf_only(blob, feats), sdf_ref, rtol=0, atol=1e-12)

@@ -16,6 +16,7 @@ torch modules.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from ..config import DecoderConfig
@@ -26,6 +27,14 @@ from .hash_grid import BACKENDS, DTYPE_CODES
 
 def _mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(n_in, n_hidden), nn.ReLU(inplace=True), nn.Linear(n_hidden, n_out))
+
+
+def _first_layer(linear: nn.Linear, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``relu(linear([a | b]))`` without concatenating ``a`` and ``b``: the weight's two column blocks apply to
+    each. Same result (up to rounding); the concatenated copy of every point's inputs, and in backward
+    the gradient of the part that needs none (the one-blob code when no pose is optimised), are never made."""
+    n_a = a.shape[-1]
+    return torch.relu_(F.linear(a, linear.weight[:, :n_a], linear.bias) + F.linear(b, linear.weight[:, n_a:]))
 
 
 class Decoders(nn.Module):
@@ -50,16 +59,19 @@ class Decoders(nn.Module):
         """``blob`` (N, 48), ``grid_features`` (N, 32) -> (sdf in truncation units (N,), rgb in [0, 1] (N, 3))."""
         if self.uses_fast_path(blob, grid_features):
             return self._fast(blob, grid_features, with_colour=True)
-        h = self.geometry(torch.cat([blob, grid_features], dim=-1))
+        h = self._geometry(blob, grid_features)
         sdf, g = h[..., 0], h[..., 1:]
-        rgb = torch.sigmoid(self.colour(torch.cat([blob, g], dim=-1)))
+        rgb = torch.sigmoid(self.colour[2](_first_layer(self.colour[0], blob, g)))
         return sdf, rgb
 
     def sdf_only(self, blob: torch.Tensor, grid_features: torch.Tensor) -> torch.Tensor:
         """The SDF alone (skips the colour MLP): (N,)."""
         if self.uses_fast_path(blob, grid_features):
             return self._fast(blob, grid_features, with_colour=False)[0]  # no colour computed
-        return self.geometry(torch.cat([blob, grid_features], dim=-1))[..., 0]
+        return self._geometry(blob, grid_features)[..., 0]
+
+    def _geometry(self, blob: torch.Tensor, grid_features: torch.Tensor) -> torch.Tensor:
+        return self.geometry[2](_first_layer(self.geometry[0], blob, grid_features))
 
     def _weights(self) -> list[torch.Tensor]:
         return [t.detach() for layer in (self.geometry[0], self.geometry[2], self.colour[0], self.colour[2])

@@ -24,8 +24,11 @@ class MapOptimizer:
                  betas: tuple[float, float] = (0.9, 0.99), eps: float = 1e-15):
         self.block_map = block_map
         self.grid_lr = grid_lr
+        # fused: torch's one-pass Adam kernel, the same update as the default implementation's several
+        # element-wise passes over every table (0.36 against 1.6-4.9 ms per step for one block's table on
+        # two cores); the tables are the bulk of the map's parameters
         self.optimizer = torch.optim.Adam([{"params": list(block_map.decoders.parameters()), "lr": decoder_lr,
-                                            "name": "decoders"}], betas=betas, eps=eps)
+                                            "name": "decoders"}], betas=betas, eps=eps, fused=True)
         self._n_blocks = 0
         self.sync()
 

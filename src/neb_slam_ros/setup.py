@@ -3,7 +3,7 @@
 from setuptools import setup
 
 PACKAGE = "neb_slam_ros"
-#: executable name -> module in neb_slam_ros exposing main()
+#: executable name -> module in neb_slam_ros exposing main() (neb_slam_ros/_launch.py lists the same)
 NODES = ("tracker", "mapper", "loop_closer", "bag_replay", "slam")
 
 setup(
@@ -19,5 +19,6 @@ setup(
     ],
     install_requires=["setuptools"],
     zip_safe=True,
-    entry_points={"console_scripts": [f"{node} = {PACKAGE}.{node}:main" for node in NODES]},
+    # through neb_slam_ros._launch, which handles a stop that arrives while the node's module imports
+    entry_points={"console_scripts": [f"{node} = {PACKAGE}._launch:{node}" for node in NODES]},
 )

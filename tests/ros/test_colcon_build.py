@@ -141,6 +141,25 @@ def test_installed_tracker_starts_and_stops_cleanly(install_base: Path, ros_doma
     assert "Traceback" not in node.stderr + node.stdout, node.stderr
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_installed_tracker_stopped_while_importing_exits_cleanly(install_base: Path, ros_domain_env: dict[str, str],
+                                                                 sig: int) -> None:
+    """A stop 1.2 s after launch arrives while the node's module still imports torch, rclpy and the engine
+    (until 2-5 s after launch here; sourcing the workspace and the entry point's own import take about
+    0.5 s): status 0, one line, no traceback."""
+    bash = shutil.which("bash")
+    if bash is None:
+        pytest.skip("bash not found: needed to source install/setup.bash")
+    exe = install_base / "neb_slam_ros" / "lib" / "neb_slam_ros" / "tracker"
+    node = _NodeProcess([bash, "-c", f'source "{install_base / "setup.bash"}" && exec "{exe}"'], ros_domain_env)
+    time.sleep(1.2)
+    rc = node.stop(sig)
+    assert rc == 0, f"exit status {rc} after {sig.name}; stderr:\n{node.stderr}"
+    assert "Traceback" not in node.stderr + node.stdout, node.stderr
+    if _start_line("tracker") not in node.stderr:  # the usual case: the import was still running
+        assert f"neb_slam tracker: stopped during start-up ({sig.name})" in node.stderr, node.stderr
+
+
 def test_tracker_module_is_visible_in_the_ros_graph(ros_domain_env: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> None:
     rclpy = pytest.importorskip("rclpy", reason="rclpy (ros-jazzy wheels) not installed")
     from rclpy.signals import SignalHandlerOptions

@@ -243,9 +243,10 @@ def test_the_kernel_is_not_used_when_a_gradient_is_wanted():
     assert all(b.grid.table.grad is not None and b.grid.table.grad.abs().sum() > 0 for b in m.blocks)
 
 
-def test_a_map_loads_its_cpp_kernels_when_made_unless_it_uses_the_reference(monkeypatch):
-    """The one-time build of the C++ extension happens when the map is made (not inside the first frame's
-    timing); a reference-backend map never asks for it, and a failed build leaves "auto" to fall back."""
+def test_prepare_loads_the_cpp_kernels_unless_the_reference_is_asked_for(monkeypatch):
+    """``neb-slam run`` builds the C++ extension before its first frame (``_ext.prepare``), so a first-use
+    compile is not timed as that frame; the reference backend never asks for it, and a failed build
+    leaves "auto" to fall back."""
     from neb_slam_core.scene import _ext, hash_grid
 
     builds = []
@@ -258,13 +259,14 @@ def test_a_map_loads_its_cpp_kernels_when_made_unless_it_uses_the_reference(monk
     monkeypatch.setattr(_ext, "_failure", None)
     monkeypatch.setattr(_ext, "_build", broken_build)
     monkeypatch.setattr(hash_grid, "_fallback_warned", False)
-    BlockMap(BlockConfig(grid=SMALL_GRID), grid_backend="reference")
+    _ext.prepare("reference")
     assert builds == []
+    _ext.prepare("auto")
+    assert builds == [1]
+    _ext.prepare("fast")  # the failure is remembered: no second build, and no error here ...
+    assert builds == [1]
     m = BlockMap(BlockConfig(grid=SMALL_GRID), grid_backend="auto")
-    assert builds == [1]
     m.add_block([0.0, 0.0, 0.0])
-    BlockMap(BlockConfig(grid=SMALL_GRID), grid_backend="auto")  # the failure is remembered: no second build
-    assert builds == [1]
-    with pytest.warns(RuntimeWarning, match="simulated"):  # the hash grid's one fallback warning
+    with pytest.warns(RuntimeWarning, match="simulated"):  # ... but where the map uses it: one fallback warning
         q = m.query(torch.zeros(4, 3))
     assert q.valid.all()

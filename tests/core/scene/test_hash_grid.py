@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -408,3 +409,29 @@ def test_resolutions_follow_the_paper_formula():
     assert hg.resolutions_per_level(2, 32, 5) == (2, 4, 8, 16, 32)
     b = math.exp((math.log(512) - math.log(16)) / 7)
     assert hg.resolutions_per_level(16, 512, 8) == tuple(math.floor(16 * b**l + 1e-9) for l in range(8))
+
+
+def test_a_build_lock_left_by_a_killed_process_is_cleared(tmp_path, monkeypatch, caplog):
+    """torch's loader waits forever while its ``lock`` file exists; one left by a process killed during a
+    load is removed (under our OS lock no live loader can own it), with a warning naming it."""
+    import logging
+
+    from torch.utils import cpp_extension
+
+    monkeypatch.setenv("NEB_SLAM_EXT_DIR", str(tmp_path))
+    monkeypatch.setattr(_ext, "_module", None)
+    monkeypatch.setattr(_ext, "_failure", None)
+    build_dir = tmp_path / f"neb_hash_grid_{_ext.build_key(_ext.compile_flags())}"
+    build_dir.mkdir()
+    (build_dir / "lock").touch()
+    seen = []
+
+    def fake_load(**kwargs):
+        seen.append((Path(kwargs["build_directory"]) / "lock").exists())
+        return "the module"
+
+    monkeypatch.setattr(cpp_extension, "load", fake_load)
+    with caplog.at_level(logging.WARNING, logger=_ext.__name__):
+        assert _ext.load_hash_grid_ext() == "the module"
+    assert seen == [False]
+    assert "left by a process killed" in caplog.text and str(build_dir / "lock") in caplog.text

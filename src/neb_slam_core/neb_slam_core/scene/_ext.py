@@ -16,6 +16,7 @@ A failed build (no compiler, no ninja, an unsupported platform) is remembered fo
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -112,10 +113,10 @@ def load_hash_grid_ext() -> ModuleType:
 
 
 def prepare(backend: str) -> None:
-    """Build (first use) or load the extension now unless ``backend`` is ``"reference"``: a block map does
-    this when it is made, so that a one-time compile lands neither inside its first frame's timing nor on
-    a node's first message. A failure is only remembered here; the modules report it where they would use
-    the extension (``"auto"`` falls back, ``"fast"`` raises)."""
+    """Build (first use) or load the extension now unless ``backend`` is ``"reference"``: ``neb-slam run``
+    does this before its first frame, so that a one-time compile is not timed as that frame's work. A
+    failure is only remembered here; the modules report it where they would use the extension
+    (``"auto"`` falls back, ``"fast"`` raises)."""
     if backend == "reference":
         return
     try:
@@ -159,12 +160,40 @@ def _build() -> ModuleType:
     already_built = any(build_dir.glob(f"{name}*.so"))
     if not already_built:
         log.info("compiling the hash-grid CPU extension (first use only), cache: %s", build_dir)
-    return cpp_extension.load(
-        name=name,
-        sources=[str(SOURCE)],
-        extra_cflags=flags,
-        extra_ldflags=["-fopenmp"],
-        build_directory=str(build_dir),
-        verbose=False,
-    )
+    with _build_guard(build_dir):
+        return cpp_extension.load(
+            name=name,
+            sources=[str(SOURCE)],
+            extra_cflags=flags,
+            extra_ldflags=["-fopenmp"],
+            build_directory=str(build_dir),
+            verbose=False,
+        )
+
+
+@contextlib.contextmanager
+def _build_guard(build_dir: Path):
+    """Serialise loads of one build folder with an OS file lock, and clear a stale torch lock inside it.
+
+    ``cpp_extension.load`` takes a lock of its own (a ``lock`` file it creates and deletes) on every load,
+    and waits, forever, while that file exists. A process killed during a load (a node stopped with
+    SIGKILL, a test's timeout) leaves the file behind, and every later start hangs silently. The OS
+    releases a ``flock`` when its process dies, so while we hold ours, a ``lock`` file can only be such
+    a leftover: it is removed with a warning. (Without ``fcntl``, not on Linux: torch's lock alone.)
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - non-POSIX platforms
+        yield
+        return
+    with open(build_dir / "neb_slam.lock", "w") as guard:
+        fcntl.flock(guard, fcntl.LOCK_EX)
+        try:
+            stale = build_dir / "lock"
+            if stale.exists():
+                log.warning("removing a build lock left by a process killed while loading the extension: %s", stale)
+                stale.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(guard, fcntl.LOCK_UN)
 

@@ -16,7 +16,6 @@ from torch import nn
 
 from ..config import BlockConfig, DecoderConfig, OneBlobConfig
 from ..types import Intrinsics
-from . import _ext
 from .block import NeuralBlock
 from .decoders import Decoders
 from .hash_grid import encode_blended
@@ -58,7 +57,6 @@ class BlockMap(nn.Module):
         self.grid_backend = grid_backend
         self.seed = int(seed)
         self.blocks = nn.ModuleList()
-        _ext.prepare(grid_backend)
         self.one_blob = OneBlob(blob_cfg, backend=grid_backend)
         with torch.random.fork_rng(devices=[]):  # decoder initialisation is part of the map's seed
             torch.manual_seed(self.seed)

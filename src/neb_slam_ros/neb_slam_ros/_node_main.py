@@ -1,7 +1,8 @@
 """The ``main()`` shared by every node executable: init rclpy, spin the nodes, shut down cleanly.
 
 Ctrl-C (SIGINT), SIGTERM (what ``ros2 launch`` and systemd send) and a shutdown requested from elsewhere
-all end the process with status 0 and no traceback, whenever they arrive (also during start-up). A node
+all end the process with status 0 and no traceback, whenever they arrive once ``run_nodes`` runs (and,
+for the executables, which start through :mod:`neb_slam_ros._launch`, while their modules import). A node
 with a ``close()`` method gets it called once spinning ends (it writes its output there: the ROS
 context may already be shut down, so ``close`` must not publish). A bad parameter ends the process
 with status 2 and one line naming the parameter.

@@ -117,12 +117,17 @@ def prepare(backend: str) -> None:
     does this before its first frame, so that a one-time compile is not timed as that frame's work. A
     failure is only remembered here; the modules report it where they would use the extension
     (``"auto"`` falls back, ``"fast"`` raises)."""
-    if backend == "reference":
-        return
+    if backend != "reference":
+        unavailable_reason()
+
+
+def unavailable_reason() -> str | None:
+    """Why the extension cannot be used in this process (builds it if needed), or ``None`` if it can."""
     try:
         load_hash_grid_ext()
-    except ExtensionUnavailable:
-        pass
+    except ExtensionUnavailable as exc:
+        return exc.reason
+    return None
 
 
 def use_fast_path(backend: str, eligible: bool, owner: str, needs: str) -> bool:
@@ -139,13 +144,7 @@ def use_fast_path(backend: str, eligible: bool, owner: str, needs: str) -> bool:
         except ExtensionUnavailable as exc:
             raise RuntimeError(f"{owner} backend 'fast' requested but unavailable: {exc.reason}") from exc
         return True
-    if not eligible:
-        return False
-    try:
-        load_hash_grid_ext()
-    except ExtensionUnavailable:
-        return False
-    return True
+    return eligible and unavailable_reason() is None
 
 
 def _build() -> ModuleType:

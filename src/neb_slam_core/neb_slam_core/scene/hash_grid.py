@@ -295,13 +295,8 @@ def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"
     return out, valid
 
 
-def fast_path_unavailable_reason() -> str | None:
-    """Why the fast CPU path cannot be used in this process (builds it if needed), or ``None`` if it can."""
-    try:
-        _ext.load_hash_grid_ext()
-    except _ext.ExtensionUnavailable as exc:
-        return exc.reason
-    return None
+#: why the fast CPU path cannot be used in this process (builds it if needed), or ``None`` if it can
+fast_path_unavailable_reason = _ext.unavailable_reason
 
 
 def _warn_fallback(reason: str) -> None:

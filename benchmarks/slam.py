@@ -14,6 +14,12 @@ Sequences:
   1,000,000 leave 1.3 cm (``recon_floor_cm``, reported beside the metrics).
 - ``small``: the ``small`` synthetic preset (60 frames, 96x72), config ``synthetic``; a quick check.
 
+Beside those, two figures that explain the seconds per frame from one run to the next: ``loops_applied``
+with ``loop_s_per_frame`` (loop detection, fits and each applied loop's re-optimisation, per frame), and
+``first_frame_s``, the first frame's time: the same work in every run of a sequence (map-only iterations
+on one frame), so the ratio of two runs' ``first_frame_s`` is how much faster the machine ran in one of them
+(on this shared 2-core machine: 8.4 to 18.5 s on TUM).
+
 The run directory (``--out``, default ``runs/bench-<sequence>-<date-time>``) keeps everything ``neb-slam run``
 writes (trajectory, plots, mesh, metrics.json). Extra arguments after ``--`` go to ``neb-slam run``.
 
@@ -27,6 +33,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import subprocess
@@ -52,6 +59,25 @@ def source_of(sequence: str) -> Path:
             sys.exit(f"TUM data not found at {path} (set NEB_SLAM_SHARED_DATA to the folder holding tum_fr1_xyz_300)")
         return path
     return generate(sequence, REPO / ".cache" / "scenes" / sequence, progress=True)
+
+
+def loop_and_speed_figures(run_dir: Path) -> dict:
+    """``loops_applied``, ``loop_s_per_frame`` and ``first_frame_s`` from the run directory's
+    ``timings.csv`` and ``loops.json`` (see the module docstring); {} when the run wrote no timings."""
+    timings = run_dir / "timings.csv"
+    if not timings.is_file():
+        return {}
+    with timings.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return {}
+    loops = run_dir / "loops.json"
+    applied = sum(bool(e.get("applied")) for e in json.loads(loops.read_text())) if loops.is_file() else 0
+    return {
+        "loops_applied": applied,
+        "loop_s_per_frame": round(sum(float(r["loop_ms"] or 0.0) for r in rows) / len(rows) / 1e3, 3),
+        "first_frame_s": round(float(rows[0]["total_ms"]) / 1e3, 2),
+    }
 
 
 def main() -> None:
@@ -101,6 +127,7 @@ def main() -> None:
         "block_mb": round(block_mb, 3),
         "decoder_mb": round(decoder_mb, 3),
         "n_tracking_failures": metrics.get("n_tracking_failures"),
+        **loop_and_speed_figures(out),
         "load_average_before": round(load_before, 2),
         "cpus": os.cpu_count(),
         "run_dir": str(out),

@@ -1,14 +1,17 @@
-"""Tracking cost per frame, and what the Gauss-Newton Jacobian's spatial gradients cost two ways.
+"""Tracking cost per frame, and what the Gauss-Newton Jacobian's spatial gradients cost three ways.
 
 On TUM fr1_xyz (``../shared/data/tum_fr1_xyz_300``, ``tum`` config), in one run:
 
 1. fit a map to ``--fit-frames`` frames with their ground-truth poses (``--fit-iterations`` of the
    config's mapping rays);
 2. for ``--track-frames`` later frames, from a pose 1 cm and 0.5 degree off, evaluate the objective
-   and build the Gauss-Newton system with the samples' spatial gradients by forward differences (one
-   batched query, the engine's way) and by autograd (one backward pass per output, the reference):
-   ``normal_equations_ms_fd``, ``normal_equations_ms_autograd`` and their ratio; the two systems'
-   largest relative difference (``max_rel_diff_H``);
+   and build the Gauss-Newton system with the samples' spatial gradients in closed form (the C++
+   features with their derivatives and the decoders' forward mode, the engine's way), by forward
+   differences (one batched query of 4x the points, the way on other backends) and by autograd (one
+   backward pass per output, the reference): ``normal_equations_ms_closed``, ``normal_equations_ms_fd``,
+   ``normal_equations_ms_autograd`` and the ratios ``fd_over_closed`` and ``autograd_over_closed``;
+   each system's largest difference to autograd's relative to its largest entry (``max_rel_diff_H_closed``,
+   ``max_rel_diff_H_fd``);
 3. track the same frames (the engine's tracker): ``track_ms`` per frame and its steps; and again with
    the autograd gradients: how far apart the two trackers' poses end (``pose_gap_to_autograd_mm``).
 
@@ -33,8 +36,8 @@ from neb_slam_core.config_io import load_config
 from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.sampling import sample_depths
 from neb_slam_core.scene.freeze import frozen
-from neb_slam_core.tracking.gauss_newton import (evaluate_pose, normal_equations, spatial_gradients,
-                                                 spatial_gradients_autograd)
+from neb_slam_core.tracking.gauss_newton import (evaluate_pose, forward_difference_gradients, normal_equations,
+                                                 spatial_gradients, spatial_gradients_autograd)
 from neb_slam_core.tracking.tracker import Tracker
 
 
@@ -53,7 +56,10 @@ def main() -> None:
 
     starts = [predicted_start(f.T_world_cam) for f in tracked]
 
-    ne_fd, ne_auto, ev_ms, rel = [], [], [], []
+    ways = {"closed": spatial_gradients, "fd": forward_difference_gradients, "autograd": spatial_gradients_autograd}
+    ne_ms = {way: [] for way in ways}
+    rel = {"closed": [], "fd": []}
+    ev_ms = []
     tr = cfg.render.truncation_m
     with frozen(block_map):
         for f, T in zip(tracked, starts):
@@ -62,12 +68,13 @@ def main() -> None:
             ids = block_map.blocks_in_frustum(T, f.intrinsics, s.near_m, s.far_m)
             ev_ms.append(median_ms(lambda: evaluate_pose(block_map, px, T, z, cfg.render, ids), args.repeats))
             ev = evaluate_pose(block_map, px, T, z, cfg.render, ids)
-            ne_fd.append(median_ms(lambda: normal_equations(ev, block_map, ids, tr, spatial_gradients), args.repeats))
-            ne_auto.append(median_ms(lambda: normal_equations(ev, block_map, ids, tr, spatial_gradients_autograd),
-                                     args.repeats))
-            H_fd, _ = normal_equations(ev, block_map, ids, tr, spatial_gradients)
+            for _ in range(args.repeats):  # the ways interleaved, so that drifts of the machine's speed hit all
+                for way, gradients in ways.items():
+                    ne_ms[way].append(median_ms(lambda: normal_equations(ev, block_map, ids, tr, gradients), 1))
             H_auto, _ = normal_equations(ev, block_map, ids, tr, spatial_gradients_autograd)
-            rel.append(float(np.abs(H_fd - H_auto).max() / np.abs(H_auto).max()))
+            for way in rel:
+                H, _ = normal_equations(ev, block_map, ids, tr, ways[way])
+                rel[way].append(float(np.abs(H - H_auto).max() / np.abs(H_auto).max()))
 
     track_ms, steps, gaps = [], [], []
     for f, T in zip(tracked, starts):
@@ -80,19 +87,21 @@ def main() -> None:
         gaps.append(1e3 * float(np.linalg.norm(result.T_world_cam[:3, 3] - reference.T_world_cam[:3, 3])))
 
     figures = {
-        "normal_equations_ms_fd": round(float(np.median(ne_fd)), 1),
-        "normal_equations_ms_autograd": round(float(np.median(ne_auto)), 1),
-        "normal_equations_ratio": round(float(np.median(ne_auto)) / float(np.median(ne_fd)), 2),
+        **{f"normal_equations_ms_{way}": round(float(np.median(ms)), 1) for way, ms in ne_ms.items()},
+        "fd_over_closed": round(float(np.median(ne_ms["fd"]) / np.median(ne_ms["closed"])), 2),
+        "autograd_over_closed": round(float(np.median(ne_ms["autograd"]) / np.median(ne_ms["closed"])), 2),
         "evaluate_pose_ms": round(float(np.median(ev_ms)), 1),
-        "max_rel_diff_H": round(max(rel), 4),
+        "max_rel_diff_H_closed": float(f"{max(rel['closed']):.2g}"),
+        "max_rel_diff_H_fd": round(max(rel["fd"]), 4),
         "track_ms": round(float(np.median(track_ms)), 1),
         "track_steps": steps,
         "pose_gap_to_autograd_mm": [round(g, 3) for g in gaps],
         "n_rays": cfg.tracking.n_rays,
         **load_figures(),
     }
-    print(f"normal equations: {figures['normal_equations_ms_fd']} ms by forward differences, "
-          f"{figures['normal_equations_ms_autograd']} ms by autograd (x{figures['normal_equations_ratio']}); "
+    print(f"normal equations: {figures['normal_equations_ms_closed']} ms in closed form, "
+          f"{figures['normal_equations_ms_fd']} ms by forward differences (x{figures['fd_over_closed']}), "
+          f"{figures['normal_equations_ms_autograd']} ms by autograd (x{figures['autograd_over_closed']}); "
           f"tracking {figures['track_ms']} ms per frame")
     report(figures, args.json)
 

@@ -270,3 +270,33 @@ def test_prepare_loads_the_cpp_kernels_unless_the_reference_is_asked_for(monkeyp
     with pytest.warns(RuntimeWarning, match="simulated"):  # ... but where the map uses it: one fallback warning
         q = m.query(torch.zeros(4, 3))
     assert q.valid.all()
+
+
+def test_spatial_gradients_in_closed_form_equal_autograd_through_the_torch_path():
+    # BlockMap.spatial_gradients (the C++ features with their derivatives, the one-blob slopes, the
+    # decoders' forward mode) against autograd's gradients of query() on the torch path, over points in
+    # one, two and three blending blocks, on faces and in none; float64 leaves only rounding between them.
+    from neb_slam_core.tracking.gauss_newton import spatial_gradients_autograd
+
+    for blend_m in (0.5, 0.0):
+        m = _fast_map(blend_m, torch.float64)
+        with torch.no_grad():  # decoder weights large enough that ReLUs switch and colours spread
+            for p in m.decoders.parameters():
+                p.normal_(0.0, 0.25, generator=torch.Generator().manual_seed(11))
+        p = _points(3000, torch.float64)
+        for ids in ([0, 1, 2], [1], [2, 0]):
+            closed = m.spatial_gradients(p, ids)
+            auto = spatial_gradients_autograd(m, p, ids)
+            assert closed.shape == (4, p.shape[0], 3)
+            scale = float(auto.abs().max())
+            assert scale > 1.0  # gradients that show errors
+            torch.testing.assert_close(closed, auto, rtol=0, atol=1e-9 * scale)
+            outside = ~m.contains(p, ids).any(dim=1)
+            assert bool(outside.any()) and torch.equal(closed[:, outside], torch.zeros_like(closed[:, outside]))
+
+
+def test_spatial_gradients_need_the_cpp_path():
+    m = BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID), grid_backend="reference", seed=3)
+    m.add_block([0.0, 0.0, 0.0])
+    assert m.spatial_gradients(torch.zeros(4, 3), [0]) is None  # the caller differentiates otherwise
+    assert _fast_map(0.5).spatial_gradients(torch.zeros(4, 3), []) is None

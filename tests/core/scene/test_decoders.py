@@ -125,3 +125,38 @@ def test_torch_path_equals_the_mlps_on_the_concatenated_inputs_with_gradients():
         torch.testing.assert_close(g, g_ref, rtol=0, atol=1e-11)
     assert 0.2 < float((sdf_ref > 0).double().mean()) < 0.8  # the ReLUs and signs are exercised
     torch.testing.assert_close(dec.sdf_only(blob, feats), sdf_ref, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 5e-5), (torch.float64, 1e-12)])
+@pytest.mark.parametrize("n", [1, 64, 1000])
+def test_forward_with_tangents_is_autograds_forward_mode(fast_ext, dtype, tol, n):
+    # The C++ kernel and the torch maths against torch.func.jvp of the torch modules, axis by axis; the
+    # blob's tangent along axis a is its slopes in block a of the codes and 0 elsewhere.
+    fast, ref = _pair(48, 32, DecoderConfig(), dtype)
+    blob, feats = _inputs(n, 48, 32, dtype)
+    g = torch.Generator().manual_seed(3)
+    slopes, d_feats = torch.randn(n, 3, 16, generator=g, dtype=dtype), torch.randn(n, 3, 32, generator=g, dtype=dtype)
+    expected = []
+    for a in range(3):
+        d_blob = torch.zeros(n, 48, dtype=dtype)
+        d_blob[:, 16 * a:16 * (a + 1)] = slopes[:, a]
+        (sdf, rgb), (d_sdf, d_rgb) = torch.func.jvp(lambda b, f: ref(b, f), (blob, feats), (d_blob, d_feats[:, a]))
+        expected.append([t.detach() for t in (sdf, rgb, d_sdf, d_rgb)])
+    for decoders in (fast, ref):
+        with torch.no_grad():
+            assert decoders.uses_fast_path(blob, feats) == (decoders is fast)
+        sdf, rgb, d_sdf, d_rgb = decoders.forward_with_tangents(blob, feats, slopes, d_feats)
+        assert d_sdf.shape == (n, 3) and d_rgb.shape == (n, 3, 3)
+        scale = float(expected[0][2].abs().max()) + 1.0
+        torch.testing.assert_close(sdf, expected[0][0], rtol=0, atol=tol * scale)
+        torch.testing.assert_close(rgb, expected[0][1], rtol=0, atol=tol)
+        for a in range(3):
+            torch.testing.assert_close(d_sdf[:, a], expected[a][2], rtol=0, atol=tol * scale)
+            torch.testing.assert_close(d_rgb[:, a], expected[a][3], rtol=0, atol=tol * scale)
+
+
+def test_forward_with_tangents_refuses_mismatched_tangents(fast_ext):
+    fast, _ = _pair(48, 32, DecoderConfig())
+    blob, feats = _inputs(5, 48, 32, torch.float32)
+    with pytest.raises(ValueError, match=r"tangents \(5, 3, 48\)"):
+        fast.forward_with_tangents(blob, feats, torch.zeros(5, 3, 48), torch.zeros(5, 3, 32))

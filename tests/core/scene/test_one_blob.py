@@ -106,3 +106,19 @@ def test_fast_path_keeps_leading_dimensions_and_nan(fast_ext):
 def test_unknown_backend_is_refused():
     with pytest.raises(ConfigError, match="OneBlob backend 'gpu'"):
         OneBlob(OneBlobConfig(), backend="gpu")
+
+
+def test_codes_with_slopes_are_the_reference_and_its_derivative():
+    from neb_slam_core.scene.one_blob import encode_reference, encode_with_slopes
+
+    cfg = OneBlobConfig()
+    x = (torch.rand(500, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64) - 0.5) * 40.0
+    code, slopes = encode_with_slopes(x, cfg.n_bins, cfg.period_m)
+    torch.testing.assert_close(code, encode_reference(x, cfg.n_bins, cfg.period_m), rtol=0, atol=1e-12)
+    jac = torch.autograd.functional.jacobian(lambda p: encode_reference(p, cfg.n_bins, cfg.period_m).sum(0), x)
+    # (3K, N, 3): code a*K + j depends on axis a only
+    k = cfg.n_bins
+    for a in range(3):
+        torch.testing.assert_close(slopes[:, a], jac[a * k:(a + 1) * k, :, a].T, rtol=0, atol=1e-10)
+        others = [b for b in range(3) if b != a]
+        assert float(jac[a * k:(a + 1) * k][:, :, others].abs().max()) == 0.0

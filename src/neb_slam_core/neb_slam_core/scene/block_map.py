@@ -207,6 +207,27 @@ class BlockMap(nn.Module):
         sdf = self.decoders.sdf_only(blob, feats)
         return MapSample(sdf * mask, points_world.new_zeros(points_world.shape[0], 3), valid)
 
+    def spatial_gradients(self, points_world: torch.Tensor, block_ids: list[int] | None = None) -> torch.Tensor | None:
+        """``(4, N, 3)``: the derivatives of SDF, red, green and blue w.r.t. ``(N, 3)`` world points (0 at
+        points in none of the blocks), in closed form: the C++ kernel's features with their derivatives
+        (:func:`~.hash_grid.encode_blended`), the one-blob slopes, and the decoders' forward mode. What
+        autograd gives through :meth:`query`, at one encoding pass instead of a backward pass per output.
+        None when that kernel does not apply (reference backend, not on the CPU); the caller then
+        differentiates otherwise (tracking: forward differences)."""
+        ids = list(range(len(self.blocks))) if block_ids is None else list(block_ids)
+        if not ids:
+            return None
+        with torch.no_grad():
+            encoded = encode_blended(points_world, self.centres()[ids], [self.blocks[i].grid for i in ids],
+                                     self.block_cfg.edge_m, self.block_cfg.blend_m, jacobian=True)
+            if encoded is None:
+                return None
+            feats, valid, d_feats = encoded
+            blob, slopes = self.one_blob.with_slopes(points_world.to(feats.dtype))
+            _, _, d_sdf, d_rgb = self.decoders.forward_with_tangents(blob, feats, slopes, d_feats)
+            grads = torch.cat([d_sdf[..., None], d_rgb], dim=-1)  # (N, axis, output)
+            return grads.permute(2, 0, 1) * valid[None, :, None].to(grads.dtype)
+
     # ------------------------------------------------------------------ allocation
 
     def allocation_tau(self, points_world: torch.Tensor, block_ids: list[int]) -> tuple[float, torch.Tensor]:

@@ -70,6 +70,54 @@ class Decoders(nn.Module):
             return self._fast(blob, grid_features, with_colour=False)[0]  # no colour computed
         return self._geometry(blob, grid_features)[..., 0]
 
+    def forward_with_tangents(self, blob: torch.Tensor, grid_features: torch.Tensor, blob_slopes: torch.Tensor,
+                              d_features: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Both MLPs and their derivatives along the three world axes (forward mode), without autograd.
+
+        Args:
+            blob: ``(N, 3K)`` one-blob codes, axis-major (block ``a`` of K codes depends on axis ``a`` alone).
+            grid_features: ``(N, D)`` hash features.
+            blob_slopes: ``(N, 3, K)``: entry ``[n, a, j]`` is ``d blob[n, a K + j] / d x_a`` (the codes'
+                derivatives along the other axes are 0).
+            d_features: ``(N, 3, D)``: the features' derivatives along each axis.
+        Returns:
+            sdf ``(N,)``, rgb ``(N, 3)``, their derivatives ``(N, 3)`` and ``(N, 3, 3)`` (``[n, a, c]``: along
+            axis ``a``).
+
+        Tracking's spatial gradients: a ReLU passes a tangent where its input is positive, the sigmoid scales
+        it by ``rgb (1 - rgb)``. Autograd has no forward mode through the C++ encodings, and its reverse mode
+        would take one backward pass per output. The C++ kernel when :meth:`uses_fast_path`
+        (``csrc/decoder_kernels.h``), else the same maths in torch.
+        """
+        n, n_blob = blob.shape
+        if blob_slopes.shape != (n, 3, n_blob // 3) or n_blob % 3 or \
+                d_features.shape != (grid_features.shape[0], 3, grid_features.shape[1]):
+            raise ValueError(f"Decoders: tangents {tuple(blob_slopes.shape)} and {tuple(d_features.shape)} do not "
+                             f"match the inputs {tuple(blob.shape)} and {tuple(grid_features.shape)} "
+                             "((N, 3, blob dims / 3) and (N, 3, feature dims))")
+        with torch.no_grad():
+            if self.uses_fast_path(blob, grid_features):
+                return self._fast_tangents(blob, grid_features, blob_slopes, d_features)
+            d_blob = torch.zeros(n, 3, 3, n_blob // 3, dtype=blob.dtype, device=blob.device)
+            for axis in range(3):  # tangent along axis a: only block a of the codes moves
+                d_blob[:, axis, axis] = blob_slopes[:, axis]
+            d_blob = d_blob.reshape(n, 3, n_blob)
+
+            def first(linear: nn.Linear, a, b, da, db):
+                n_a = a.shape[-1]
+                w_a, w_b = linear.weight[:, :n_a], linear.weight[:, n_a:]
+                z = F.linear(a, w_a, linear.bias) + F.linear(b, w_b)
+                on = (z > 0).to(z.dtype)
+                return z * on, (F.linear(da, w_a) + F.linear(db, w_b)) * on[:, None, :]
+
+            geo_hidden, d_geo_hidden = first(self.geometry[0], blob, grid_features, d_blob, d_features)
+            out = self.geometry[2](geo_hidden)
+            d_out = F.linear(d_geo_hidden, self.geometry[2].weight)
+            col_hidden, d_col_hidden = first(self.colour[0], blob, out[:, 1:], d_blob, d_out[..., 1:])
+            rgb = torch.sigmoid(self.colour[2](col_hidden))
+            d_rgb = F.linear(d_col_hidden, self.colour[2].weight) * (rgb * (1.0 - rgb))[:, None, :]
+            return out[:, 0], rgb, d_out[..., 0], d_rgb
+
     def _geometry(self, blob: torch.Tensor, grid_features: torch.Tensor) -> torch.Tensor:
         return self.geometry[2](_first_layer(self.geometry[0], blob, grid_features))
 
@@ -90,15 +138,34 @@ class Decoders(nn.Module):
                                   f"2-D CPU inputs of the weights' float dtype ({dtype}); got {blob.dtype} / "
                                   f"{grid_features.dtype} on {blob.device}")
 
-    def _fast(self, blob: torch.Tensor, grid_features: torch.Tensor,
-              with_colour: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def _fast_tangents(self, blob: torch.Tensor, grid_features: torch.Tensor, blob_slopes: torch.Tensor,
+                       d_features: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        self._check_inputs(blob, grid_features)
         blob, feats = blob.contiguous(), grid_features.contiguous()
+        slopes, d_feats = blob_slopes.to(blob.dtype).contiguous(), d_features.to(blob.dtype).contiguous()
         n = blob.shape[0]
-        if (blob.shape[1] + feats.shape[1] != self.geometry[0].in_features or feats.shape[0] != n
+        weights = [t.contiguous() for t in self._weights()]
+        sdf, rgb = blob.new_empty(n), blob.new_empty(n, 3)
+        d_sdf, d_rgb = blob.new_empty(n, 3), blob.new_empty(n, 3, 3)
+        _ext.load_hash_grid_ext().decoder_forward_tangents(
+            DTYPE_CODES[blob.dtype], blob.data_ptr(), feats.data_ptr(), slopes.data_ptr(), d_feats.data_ptr(), n,
+            blob.shape[1], feats.shape[1], [t.data_ptr() for t in weights], self.cfg.hidden_dim,
+            1 + self.cfg.feature_dim, 3, sdf.data_ptr(), rgb.data_ptr(), d_sdf.data_ptr(), d_rgb.data_ptr(),
+            torch.get_num_threads())
+        return sdf, rgb, d_sdf, d_rgb
+
+    def _check_inputs(self, blob: torch.Tensor, feats: torch.Tensor) -> None:
+        if (blob.shape[1] + feats.shape[1] != self.geometry[0].in_features or feats.shape[0] != blob.shape[0]
                 or blob.shape[1] + self.cfg.feature_dim != self.colour[0].in_features):
             raise ValueError(f"Decoders: inputs {tuple(blob.shape)} and {tuple(feats.shape)} do not make the "
                              f"geometry MLP's {self.geometry[0].in_features} inputs and the colour MLP's "
                              f"{self.colour[0].in_features}")
+
+    def _fast(self, blob: torch.Tensor, grid_features: torch.Tensor,
+              with_colour: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        self._check_inputs(blob, grid_features)
+        blob, feats = blob.contiguous(), grid_features.contiguous()
+        n = blob.shape[0]
         weights = [t.contiguous() for t in self._weights()]
         sdf = blob.new_empty(n)
         rgb = blob.new_empty(n, 3) if with_colour else None

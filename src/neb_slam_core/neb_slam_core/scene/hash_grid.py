@@ -258,17 +258,19 @@ class _FastHashEncode(torch.autograd.Function):
 
 
 def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"], edge_m: float,
-                   blend_m: float) -> tuple[Tensor, Tensor] | None:
-    """Hash features of world points blended over several blocks, by the C++ kernel, without gradients.
+                   blend_m: float, jacobian: bool = False) -> tuple[Tensor, ...] | None:
+    """Hash features of world points blended over several blocks, by the C++ kernel, without autograd.
 
     Block ``b`` is the cube of edge ``edge_m`` centred at ``centres[b]`` with the grid ``grids[b]``; a point
     takes the mean of the features of the blocks containing it, weighted by the blend window
     (:meth:`~neb_slam_core.scene.block_map.BlockMap.grid_features` defines it and runs the same sum in torch).
 
     Returns:
-        ``(N, L*F)`` features and ``(N,)`` bool validity, or None when this path does not apply: a gradient
-        is wanted (grad mode on and the points or a table require one), a grid runs the reference backend,
-        the tensors are not on the CPU, or the grids' layouts differ. The caller then uses the torch path.
+        ``(N, L*F)`` features and ``(N,)`` bool validity, with ``jacobian`` also ``(N, 3, L*F)``: the
+        features' derivatives w.r.t. the world points (what autograd would give through the torch path;
+        0 at points in no block). None when this path does not apply: a gradient is wanted (grad mode on
+        and the points or a table require one), a grid runs the reference backend, the tensors are not
+        on the CPU, or the grids' layouts differ. The caller then uses the torch path.
     """
     if not grids:
         return None
@@ -288,11 +290,12 @@ def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"
         raise ValueError("hash grid fast path: the blocks' tables differ in shape or dtype")
     out = torch.empty(x.shape[0], meta.n_output_dims, dtype=x.dtype)
     valid = torch.empty(x.shape[0], dtype=torch.bool)
+    jac = torch.empty(x.shape[0], 3, meta.n_output_dims, dtype=x.dtype) if jacobian else None
     ext.forward_blocks(DTYPE_CODES[x.dtype], meta.n_features, _ptr(x), _ptr(c), [_ptr(t) for t in tables],
-                       float(edge_m), float(blend_m), _ptr(out), _ptr(valid), x.shape[0], meta.n_levels,
+                       float(edge_m), float(blend_m), _ptr(out), _ptr(valid), _ptr(jac), x.shape[0], meta.n_levels,
                        _ptr(g0.level_offsets), _ptr(g0.level_resolutions), _ptr(g0.level_is_dense),
                        meta.table_size, torch.get_num_threads())
-    return out, valid
+    return (out, valid, jac) if jacobian else (out, valid)
 
 
 #: why the fast CPU path cannot be used in this process (builds it if needed), or ``None`` if it can

@@ -15,6 +15,9 @@ Two interchangeable implementations, as for the hash grid (:mod:`.hash_grid`):
   ops over ``(N, 3, K)`` and autograd's walk back through them cost more than the decoders the code
   feeds; the kernel needs two exponentials per axis and side instead of K (see its header).
 
+Tracking's closed-form spatial gradients also need the codes' derivatives themselves (not a gradient
+summed over them): :func:`encode_with_slopes`, in torch (three small element-wise ops beside the reference's).
+
 :class:`OneBlob` picks between them like :class:`~.hash_grid.HashGrid` (``backend="auto"``: the fast path
 for CPU float32/float64 points when the extension builds, the reference otherwise).
 """
@@ -38,6 +41,18 @@ def encode_reference(points_world: Tensor, n_bins: int, period_m: float) -> Tens
     d = torch.minimum(d, 1.0 - d)  # distance on the circle
     code = torch.exp(-0.5 * (d * n_bins) ** 2)  # sigma = 1 / K
     return code.flatten(-2)
+
+
+def encode_with_slopes(points_world: Tensor, n_bins: int, period_m: float) -> tuple[Tensor, Tensor]:
+    """The codes ``(N, 3 * n_bins)`` of ``(N, 3)`` world points and their slopes ``(N, 3, n_bins)``: entry
+    ``[n, a, j]`` is ``d code[n, a * n_bins + j] / d x[n, a]`` (a code depends on its own axis only), in plain
+    torch: ``-K^2 s code / period`` with ``s`` the signed phase offset from the bin centre on the circle."""
+    centres = (torch.arange(n_bins, dtype=points_world.dtype, device=points_world.device) + 0.5) / n_bins
+    phase = torch.remainder(points_world / period_m, 1.0)  # (N, 3)
+    s = phase[..., None] - centres  # (N, 3, K)
+    s = s - torch.round(s)  # signed offset on the unit circle, in [-1/2, 1/2]
+    code = torch.exp(-0.5 * (s * n_bins) ** 2)
+    return code.flatten(-2), (-(n_bins * n_bins) / period_m) * s * code
 
 
 class _FastOneBlob(torch.autograd.Function):
@@ -89,6 +104,10 @@ class OneBlob(torch.nn.Module):
         eligible = points.device.type == "cpu" and points.dtype in DTYPE_CODES
         return _ext.use_fast_path(self.backend, eligible, "OneBlob",
                                   f"CPU float32/float64 points; got {points.dtype} on {points.device}")
+
+    def with_slopes(self, points_world: Tensor) -> tuple[Tensor, Tensor]:
+        """``(N, 3)`` points -> codes ``(N, 3K)`` and slopes ``(N, 3, K)`` (:func:`encode_with_slopes`)."""
+        return encode_with_slopes(points_world, self.cfg.n_bins, float(self.cfg.period_m))
 
     def forward(self, points_world: Tensor) -> Tensor:
         lead = points_world.shape[:-1]

@@ -11,11 +11,15 @@ steps reach the minimum that Adam approaches slowly.
 The Jacobian of every residual in the 6 pose parameters is built without 6 passes over the map:
 
 * each sample's SDF and colour depend only on its own point, so their spatial gradients ``d sdf / d p``
-  (and per colour channel) come from one batched map query at the points and at the points moved by
-  a fifth of a millimetre along each world axis (forward differences). Within a cell of every grid
-  level the encoding is linear along each axis, so the difference is the derivative there; crossing a
-  cell face averages the two cells' slopes. One forward query of 4x the points costs about a third
-  of the four backward passes (SDF and three colours) that autograd would need;
+  (and per colour channel) are those of the map at that point: in closed form where the map's C++
+  kernels run (the hash features with their derivatives from the same 8 rows per level, the one-blob
+  slopes, the decoders in forward mode along the three axes:
+  :meth:`~neb_slam_core.scene.block_map.BlockMap.spatial_gradients`), else by forward differences, one
+  batched map query at the points and at the points moved by a fifth of a millimetre along each axis
+  (:func:`forward_difference_gradients`; within a cell of every grid level the encoding is linear
+  along each axis, so the difference is the derivative there, and crossing a cell face averages the
+  two cells' slopes). Either costs less than the four backward passes (SDF and three colours) autograd
+  would need;
 * a sample's point moves with the pose as ``dp = domega x (p - t) + dt`` (the parameterisation of
   :mod:`neb_slam_core.geometry.lie`: ``R = exp(omega) R0``, ``t = t0 + dt``);
 * a ray's rendered depth and colour depend only on that ray's samples, through the normalised
@@ -88,9 +92,18 @@ FD_STEP_M = 2e-4
 
 
 def spatial_gradients(block_map: BlockMap, points: torch.Tensor, block_ids: list[int] | None) -> torch.Tensor:
-    """``(4, A, 3)``: the gradients of SDF, red, green and blue at ``(A, 3)`` world points, by forward
-    differences along the world axes in one batched query. Where a moved point leaves the consulted
-    blocks, the gradient is 0 (the masked value jumps there)."""
+    """``(4, A, 3)``: the gradients of SDF, red, green and blue at ``(A, 3)`` world points: in closed form
+    (:meth:`~neb_slam_core.scene.block_map.BlockMap.spatial_gradients`) where the map's C++ kernels run,
+    else by :func:`forward_difference_gradients`."""
+    grads = block_map.spatial_gradients(points, block_ids)
+    return grads if grads is not None else forward_difference_gradients(block_map, points, block_ids)
+
+
+def forward_difference_gradients(block_map: BlockMap, points: torch.Tensor,
+                                 block_ids: list[int] | None) -> torch.Tensor:
+    """The same ``(4, A, 3)`` by forward differences along the world axes in one batched query (any
+    backend and device). Where a moved point leaves the consulted blocks, the gradient is 0 (the masked
+    value jumps there)."""
     n = points.shape[0]
     shifted = points[None].repeat(4, 1, 1)
     for axis in range(3):

@@ -121,24 +121,31 @@ void backward(int dtype, int64_t F, uintptr_t grad_out, uintptr_t x, uintptr_t t
 
 template <typename T, int F>
 void forward_blocks_typed(uintptr_t xw, uintptr_t centres, const std::vector<uintptr_t>& tables, double edge,
-                          double blend, uintptr_t out, uintptr_t valid, int64_t n, const std::vector<Level>& levels,
-                          int n_threads) {
+                          double blend, uintptr_t out, uintptr_t valid, uintptr_t jac, int64_t n,
+                          const std::vector<Level>& levels, int n_threads) {
   std::vector<const T*> tabs;
   for (uintptr_t t : tables) tabs.push_back(as_ptr<const T>(t));
-  neb_hash_grid::forward_blocks<T, F>(as_ptr<const T>(xw), as_ptr<const T>(centres), tabs, static_cast<T>(edge),
-                                      static_cast<T>(blend), as_ptr<T>(out), as_ptr<uint8_t>(valid), n, levels,
-                                      n_threads);
+  if (jac)
+    neb_hash_grid::forward_blocks<T, F, true>(as_ptr<const T>(xw), as_ptr<const T>(centres), tabs,
+                                              static_cast<T>(edge), static_cast<T>(blend), as_ptr<T>(out),
+                                              as_ptr<uint8_t>(valid), as_ptr<T>(jac), n, levels, n_threads);
+  else
+    neb_hash_grid::forward_blocks<T, F, false>(as_ptr<const T>(xw), as_ptr<const T>(centres), tabs,
+                                               static_cast<T>(edge), static_cast<T>(blend), as_ptr<T>(out),
+                                               as_ptr<uint8_t>(valid), nullptr, n, levels, n_threads);
 }
 
 // xw (n, 3) world points, centres (M, 3), tables: M addresses of (E, F) tables with one level layout,
-// out (n, L*F), valid (n) bytes: all contiguous, same dtype, allocated by the caller.
+// out (n, L*F), valid (n) bytes, jac (n, 3, L*F) or 0 when the derivatives w.r.t. the points are not
+// wanted: all contiguous, same dtype, allocated by the caller.
 void forward_blocks(int dtype, int64_t F, uintptr_t xw, uintptr_t centres, const std::vector<uintptr_t>& tables,
-                    double edge, double blend, uintptr_t out, uintptr_t valid, int64_t n, int64_t n_levels,
-                    uintptr_t offsets, uintptr_t resolutions, uintptr_t dense, int64_t table_size, int n_threads) {
+                    double edge, double blend, uintptr_t out, uintptr_t valid, uintptr_t jac, int64_t n,
+                    int64_t n_levels, uintptr_t offsets, uintptr_t resolutions, uintptr_t dense, int64_t table_size,
+                    int n_threads) {
   const auto levels = make_levels(n_levels, offsets, resolutions, dense, table_size);
   if (!(edge > 0)) throw std::invalid_argument("hash_grid: block edge must be positive");
   if (n <= 0) return;
-  NEB_DISPATCH(dtype, F, (forward_blocks_typed<T, kF>(xw, centres, tables, edge, blend, out, valid, n, levels,
+  NEB_DISPATCH(dtype, F, (forward_blocks_typed<T, kF>(xw, centres, tables, edge, blend, out, valid, jac, n, levels,
                                                       n_threads)));
 }
 
@@ -202,18 +209,42 @@ void decoder_forward(int dtype, uintptr_t blob, uintptr_t feat, int64_t n, int64
       as_ptr<T>(sdf), rgb ? as_ptr<T>(rgb) : nullptr, n, n_threads)));
 }
 
+// decoder_forward plus derivatives along 3 tangents per point (tangent t: along world axis t):
+// blob_slopes (n, 3, n_blob / 3), d_feat (n, 3, n_feat), d_sdf (n, 3), d_rgb (n, 3, 3); rgb is required here.
+void decoder_forward_tangents(int dtype, uintptr_t blob, uintptr_t feat, uintptr_t blob_slopes, uintptr_t d_feat, int64_t n,
+                              int64_t n_blob, int64_t n_feat, const std::vector<uintptr_t>& weights, int64_t n_hidden,
+                              int64_t n_geo_out, int64_t n_rgb, uintptr_t sdf, uintptr_t rgb, uintptr_t d_sdf,
+                              uintptr_t d_rgb, int n_threads) {
+  if (weights.size() != 8) throw std::invalid_argument("decoders: need the 8 weight and bias addresses");
+  if (n_geo_out < 1) throw std::invalid_argument("decoders: the geometry MLP needs an sdf output");
+  if (!rgb || !d_sdf || !d_rgb) throw std::invalid_argument("decoders: tangents need rgb, d_sdf and d_rgb");
+  if (n_blob % 3 != 0) throw std::invalid_argument("decoders: tangents need a blob of 3 axis blocks");
+  if (n <= 0) return;
+  const auto& w = weights;
+  NEB_DISPATCH_FLOAT(dtype, (neb_decoders::forward_tangents<T>(
+      as_ptr<const T>(blob), as_ptr<const T>(feat), as_ptr<const T>(blob_slopes), as_ptr<const T>(d_feat),
+      static_cast<int>(n_blob), static_cast<int>(n_feat),
+      layer<T>(w[0], w[1], n_blob + n_feat, n_hidden), layer<T>(w[2], w[3], n_hidden, n_geo_out),
+      layer<T>(w[4], w[5], n_blob + n_geo_out - 1, n_hidden), layer<T>(w[6], w[7], n_hidden, n_rgb),
+      as_ptr<T>(sdf), as_ptr<T>(rgb), as_ptr<T>(d_sdf), as_ptr<T>(d_rgb), n, n_threads)));
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "NeB-SLAM hash-grid and one-blob encodings and decoders: CPU kernels on raw buffers";
   m.def("forward", &forward, "encode points: x (n, 3) -> out (n, L*F)", py::call_guard<py::gil_scoped_release>());
-  m.def("forward_blocks", &forward_blocks, "features of world points blended over several blocks (no gradient)",
+  m.def("forward_blocks", &forward_blocks, "features of world points blended over several blocks, optionally with their derivatives "
+        "w.r.t. the points (no autograd)",
         py::call_guard<py::gil_scoped_release>());
   m.def("backward", &backward, "gradients w.r.t. the points and/or the table",
         py::call_guard<py::gil_scoped_release>());
   m.def("one_blob_forward", &one_blob_forward, "one-blob codes: x (n, 3) -> out (n, 3K)",
         py::call_guard<py::gil_scoped_release>());
   m.def("one_blob_backward", &one_blob_backward, "one-blob gradient w.r.t. the points",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("decoder_forward_tangents", &decoder_forward_tangents,
+        "both decoders and their derivatives along 3 tangents per point (no autograd)",
         py::call_guard<py::gil_scoped_release>());
   m.def("decoder_forward", &decoder_forward, "both decoders on (blob, feat) -> sdf, rgb (no gradient)",
         py::call_guard<py::gil_scoped_release>());

@@ -215,6 +215,28 @@ void forward(const T* x, const T* table, T* out, int64_t n, const std::vector<Le
   }
 }
 
+// a[f] and its derivatives da[d][f] along the three local axes (in grid cells of the level: the caller
+// multiplies by R): differences of the corner values along each axis, interpolated over the other two.
+template <typename T, int F>
+__attribute__((always_inline)) inline void interpolate_with_slopes(const CellBlock<T>& cb, const T* __restrict tab,
+                                                                   int i, T (&a)[F], T (&da)[3][F]) {
+  const T* r[8];
+  for (int k = 0; k < 8; ++k) r[k] = tab + static_cast<int64_t>(cb.row[k][i]) * F;
+  const T tx = cb.t[0][i], ty = cb.t[1][i], tz = cb.t[2][i];
+  const T ux = T(1) - tx, uy = T(1) - ty, uz = T(1) - tz;
+  for (int f = 0; f < F; ++f) {
+    T v = 0;
+    for (int k = 0; k < 8; ++k) v += cb.w[k][i] * r[k][f];
+    a[f] = v;
+    da[0][f] = ((r[1][f] - r[0][f]) * uy + (r[3][f] - r[2][f]) * ty) * uz +
+               ((r[5][f] - r[4][f]) * uy + (r[7][f] - r[6][f]) * ty) * tz;
+    da[1][f] = ((r[2][f] - r[0][f]) * ux + (r[3][f] - r[1][f]) * tx) * uz +
+               ((r[6][f] - r[4][f]) * ux + (r[7][f] - r[5][f]) * tx) * tz;
+    da[2][f] = ((r[4][f] - r[0][f]) * ux + (r[5][f] - r[1][f]) * tx) * uy +
+               ((r[6][f] - r[2][f]) * ux + (r[7][f] - r[3][f]) * tx) * ty;
+  }
+}
+
 // Features of world points blended over several blocks (BlockMap.grid_features with more than one block
 // in view; forward only, so it serves tracking, rendering without gradients and meshing, and the torch
 // path in block_map.py runs when gradients are needed). Block b is the cube of edge `edge` centred at
@@ -225,9 +247,17 @@ void forward(const T* x, const T* table, T* out, int64_t n, const std::vector<Le
 // zeros and valid 0. One pass per chunk of points: the chunk's points inside each block are compacted
 // and encoded with that block's table, and their weighted features accumulate in a per-thread buffer,
 // where the torch path needs a gather, an encode call, a scatter and a blend per block.
-template <typename T, int F>
+//
+// With kJacobian, jac (n, 3, L*F) also receives the derivatives of those features w.r.t. the world point
+// (tracking's Gauss-Newton Jacobians; the spatial gradient of one point is otherwise four encodings by
+// forward differences). The same 8 rows per level give the value and its three slopes; by the quotient rule
+//   d out / d x = (sum_b w_b d enc_b / dx + enc_b d w_b / dx - out sum_b d w_b / dx) / sum_b w_b,
+//   d enc_b / d x = R_l / edge x the level's slope (0 along an axis where the local coordinate leaves
+//   [0, 1], as the clamp of the torch path), d w_b / d x = -sign(x - c_b) / blend on the axis of the
+//   largest |x - c_b| where w_b is strictly inside its clamp, else 0: autograd's gradient of that path.
+template <typename T, int F, bool kJacobian>
 void forward_blocks(const T* xw, const T* centres, const std::vector<const T*>& tables, T edge, T blend, T* out,
-                    uint8_t* valid, int64_t n, const std::vector<Level>& levels, int n_threads) {
+                    uint8_t* valid, T* jac, int64_t n, const std::vector<Level>& levels, int n_threads) {
   const int L = static_cast<int>(levels.size());
   const int D = L * F;
   const int n_tables = static_cast<int>(tables.size());
@@ -239,8 +269,12 @@ void forward_blocks(const T* xw, const T* centres, const std::vector<const T*>& 
     alignas(64) T xl[3 * kBlock];
     alignas(64) T wt[kBlock];
     alignas(64) T wsum[kBlock];
+    alignas(64) T dwt[3][kBlock];     // kJacobian: d w_b / d x of the compacted points
+    alignas(64) T dwsum[3][kBlock];   // kJacobian: sum_b d w_b / d x
+    alignas(64) T inside01[3][kBlock];  // kJacobian: 1 where the local coordinate lies in [0, 1], else 0
     int32_t idx[kBlock];
     std::vector<T> acc(static_cast<size_t>(kBlock) * D);
+    std::vector<T> jacc(kJacobian ? static_cast<size_t>(kBlock) * 3 * D : 0);
 #pragma omp for schedule(dynamic, 4)
     for (int64_t blk = 0; blk < n_blocks; ++blk) {
       const int64_t i0 = blk * kBlock;
@@ -248,18 +282,36 @@ void forward_blocks(const T* xw, const T* centres, const std::vector<const T*>& 
       const T* xb = xw + 3 * i0;
       std::fill(acc.begin(), acc.begin() + static_cast<size_t>(m) * D, T(0));
       std::fill(wsum, wsum + m, T(0));
+      if constexpr (kJacobian) {
+        std::fill(jacc.begin(), jacc.begin() + static_cast<size_t>(m) * 3 * D, T(0));
+        for (int d = 0; d < 3; ++d) std::fill(dwsum[d], dwsum[d] + m, T(0));
+      }
       for (int b = 0; b < n_tables; ++b) {
         const T* c = centres + 3 * b;
         int k = 0;
         for (int i = 0; i < m; ++i) {
           const T dx = xb[3 * i] - c[0], dy = xb[3 * i + 1] - c[1], dz = xb[3 * i + 2] - c[2];
-          const T to_face = half - std::max(std::abs(dx), std::max(std::abs(dy), std::abs(dz)));
+          const T ax = std::abs(dx), ay = std::abs(dy), az = std::abs(dz);
+          const T to_face = half - std::max(ax, std::max(ay, az));
           if (!(to_face >= T(0))) continue;  // outside (or NaN)
           idx[k] = i;
           xl[3 * k] = dx / edge + T(0.5);
           xl[3 * k + 1] = dy / edge + T(0.5);
           xl[3 * k + 2] = dz / edge + T(0.5);
           wt[k] = blend > T(0) ? std::min(std::max(to_face / blend, T(1e-6)), T(1)) : T(1);
+          if constexpr (kJacobian) {
+            const T ratio = blend > T(0) ? to_face / blend : T(1);
+            const bool sloped = ratio > T(1e-6) && ratio < T(1);
+            // the axis torch's amax would pick (the first of equal maxima); its gradient goes there
+            const int axis = (ax >= ay && ax >= az) ? 0 : (ay >= az ? 1 : 2);
+            const T delta[3] = {dx, dy, dz};
+            for (int d = 0; d < 3; ++d) {
+              const T sign = delta[d] > T(0) ? T(1) : (delta[d] < T(0) ? T(-1) : T(0));
+              dwt[d][k] = (sloped && d == axis) ? -sign / blend : T(0);
+              const T v = xl[3 * k + d];
+              inside01[d][k] = (v >= T(0) && v <= T(1)) ? T(1) : T(0);
+            }
+          }
           ++k;
         }
         if (k == 0) continue;
@@ -267,14 +319,29 @@ void forward_blocks(const T* xw, const T* centres, const std::vector<const T*>& 
           const Level& lv = levels[l];
           locate_block(lv, xl, k, cb);
           const T* __restrict tab = tables[b] + lv.offset * F;
+          const T scale = static_cast<T>(lv.res) / edge;  // grid cells per metre
           for (int i = 0; i < k; ++i) {
             T a[F];
-            interpolate<T, F>(cb, tab, i, a);
             T* dst = acc.data() + static_cast<int64_t>(idx[i]) * D + l * F;
+            if constexpr (kJacobian) {
+              T da[3][F];
+              interpolate_with_slopes<T, F>(cb, tab, i, a, da);
+              T* jd = jacc.data() + static_cast<int64_t>(idx[i]) * 3 * D + l * F;
+              for (int d = 0; d < 3; ++d) {
+                const T s = scale * inside01[d][i] * wt[i];
+                for (int f = 0; f < F; ++f) jd[d * D + f] += s * da[d][f] + dwt[d][i] * a[f];
+              }
+            } else {
+              interpolate<T, F>(cb, tab, i, a);
+            }
             for (int f = 0; f < F; ++f) dst[f] += a[f] * wt[i];
           }
         }
-        for (int i = 0; i < k; ++i) wsum[idx[i]] += wt[i];
+        for (int i = 0; i < k; ++i) {
+          wsum[idx[i]] += wt[i];
+          if constexpr (kJacobian)
+            for (int d = 0; d < 3; ++d) dwsum[d][idx[i]] += dwt[d][i];
+        }
       }
       for (int i = 0; i < m; ++i) {
         const T denom = std::max(wsum[i], T(1e-12));
@@ -282,6 +349,12 @@ void forward_blocks(const T* xw, const T* centres, const std::vector<const T*>& 
         T* dst = out + (i0 + i) * D;
         for (int j = 0; j < D; ++j) dst[j] = src[j] / denom;
         valid[i0 + i] = wsum[i] > T(0) ? 1 : 0;
+        if constexpr (kJacobian) {
+          const T* jsrc = jacc.data() + static_cast<int64_t>(i) * 3 * D;
+          T* jdst = jac + (i0 + i) * 3 * D;
+          for (int d = 0; d < 3; ++d)
+            for (int j = 0; j < D; ++j) jdst[d * D + j] = (jsrc[d * D + j] - dst[j] * dwsum[d][i]) / denom;
+        }
       }
     }
   }

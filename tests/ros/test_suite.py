@@ -71,7 +71,9 @@ def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: boo
                                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         assert "listener ready" in listener.stderr.readline()
-        run = launch(small_bag, out, CONFIG, one_process=one_process, mesh_period_s=8.0, env=env, **launch_args)
+        # the mesh goes out on its timer only (not at shutdown): a period well inside the shortest run seen
+        # (8 frames in about 7 s from the node's start, where 8 s once let a fast run end without a mesh)
+        run = launch(small_bag, out, CONFIG, one_process=one_process, mesh_period_s=2.0, env=env, **launch_args)
         time.sleep(2.0)  # the last path and mesh messages reach the listener
     finally:
         listener.send_signal(signal.SIGINT)

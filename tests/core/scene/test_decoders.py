@@ -129,9 +129,9 @@ def test_torch_path_equals_the_mlps_on_the_concatenated_inputs_with_gradients():
 
 @pytest.mark.parametrize("dtype,tol", [(torch.float32, 5e-5), (torch.float64, 1e-12)])
 @pytest.mark.parametrize("n", [1, 64, 1000])
-def test_forward_with_tangents_is_autograds_forward_mode(fast_ext, dtype, tol, n):
-    # The C++ kernel and the torch maths against torch.func.jvp of the torch modules, axis by axis; the
-    # blob's tangent along axis a is its slopes in block a of the codes and 0 elsewhere.
+def test_forward_with_tangents_are_autograds_jacobian_vector_products(fast_ext, dtype, tol, n):
+    # The C++ kernel and the torch maths against autograd's Jacobian-vector products of the torch modules,
+    # axis by axis; the blob's tangent along axis a is its slopes in block a of the codes and 0 elsewhere.
     fast, ref = _pair(48, 32, DecoderConfig(), dtype)
     blob, feats = _inputs(n, 48, 32, dtype)
     g = torch.Generator().manual_seed(3)
@@ -140,7 +140,8 @@ def test_forward_with_tangents_is_autograds_forward_mode(fast_ext, dtype, tol, n
     for a in range(3):
         d_blob = torch.zeros(n, 48, dtype=dtype)
         d_blob[:, 16 * a:16 * (a + 1)] = slopes[:, a]
-        (sdf, rgb), (d_sdf, d_rgb) = torch.func.jvp(lambda b, f: ref(b, f), (blob, feats), (d_blob, d_feats[:, a]))
+        (sdf, rgb), (d_sdf, d_rgb) = torch.autograd.functional.jvp(lambda b, f: ref(b, f), (blob, feats),
+                                                                   (d_blob, d_feats[:, a]))
         expected.append([t.detach() for t in (sdf, rgb, d_sdf, d_rgb)])
     for decoders in (fast, ref):
         with torch.no_grad():

@@ -63,7 +63,8 @@ def _ate_cm(traj, frames) -> float:
     return evaluate_ate(traj, gt).rmse_cm
 
 
-def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: bool, **launch_args):
+def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: bool, mesh_period_s: float = 0.0,
+               **launch_args):
     from neb_slam_ros.suite import launch
 
     listener_json = out.parent / f"{out.name}-listener.json"
@@ -71,9 +72,10 @@ def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: boo
                                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         assert "listener ready" in listener.stderr.readline()
-        # the mesh goes out on its timer only (not at shutdown): a period well inside the shortest run seen
-        # (8 frames in about 7 s from the node's start, where 8 s once let a fast run end without a mesh)
-        run = launch(small_bag, out, CONFIG, one_process=one_process, mesh_period_s=2.0, env=env, **launch_args)
+        # the mesh goes out every mesh_period_s (0: never on a timer) and, whatever the period, once more at
+        # shutdown, the node waiting for the listener's acknowledgement
+        run = launch(small_bag, out, CONFIG, one_process=one_process, mesh_period_s=mesh_period_s, env=env,
+                     **launch_args)
         time.sleep(2.0)  # the last path and mesh messages reach the listener
     finally:
         listener.send_signal(signal.SIGINT)
@@ -113,12 +115,15 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
 
     mesh = trimesh.load(run.run_dir / "mesh.ply")
     assert len(mesh.faces) > 100
+    # the last mesh on the topic is the final one, mesh.ply's (its triangles whose centroid lies in a block)
+    assert 0.99 * 3 * len(mesh.faces) <= seen["mesh_points"] <= 3 * len(mesh.faces), (seen["mesh_points"], len(mesh.faces))
     for name in ("groundtruth.txt", "metrics.json", "trajectory.png", "config.yaml"):
         assert (run.run_dir / name).is_file(), name
 
 
 def test_separate_processes_replay_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):
-    run, seen, logs = _run_suite(small_bag, tmp_path / "suite", ros_env, one_process=False)
+    # a period well inside the run (8 frames in about 7 s from the nodes' start): timer and final meshes
+    run, seen, logs = _run_suite(small_bag, tmp_path / "suite", ros_env, one_process=False, mesh_period_s=2.0)
     _check(run, seen, logs, offline, small_bag)
     # lockstep with map_sync: exactly the one-process computation, to the last bit of the float64 poses
     # (up to the quaternion of the path messages the mapper corrects with)
@@ -129,7 +134,8 @@ def test_separate_processes_replay_a_bag_like_the_offline_engine(small_bag, offl
 
 
 def test_one_process_slam_replays_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):
-    run, seen, logs = _run_suite(small_bag, tmp_path / "slam", ros_env, one_process=True)
+    # no timer: the mesh the listener sees is the one published at shutdown
+    run, seen, logs = _run_suite(small_bag, tmp_path / "slam", ros_env, one_process=True, mesh_period_s=0.0)
     _check(run, seen, logs, offline, small_bag)
     for name in ("timings.csv", "blocks.png", "ate_over_time.png"):
         assert (run.run_dir / name).is_file(), name

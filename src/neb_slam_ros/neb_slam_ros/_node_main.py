@@ -72,7 +72,7 @@ SPIN_SLICE_S = 0.5
 
 
 def final_log(node: Node, text: str, level: str = "INFO") -> None:
-    """A log line from ``close()``: the ROS context may be shut down by then (the replay ended it), and
+    """A log line from ``close()``: the ROS context may be shut down by then (from outside the process), and
     rclpy's logger, which also publishes to /rosout, would complain; this writes the same format to
     stderr only."""
     print(f"[{level}] [{time.time():.9f}] [{node.get_logger().name}]: {text}", file=sys.stderr, flush=True)
@@ -99,11 +99,23 @@ def _stop_on_signals(stop: threading.Event) -> dict:
     return {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
+#: set by :func:`request_stop`, SIGINT or SIGTERM: ends the spin of :func:`run_nodes`
+_stop = threading.Event()
+
+
+def request_stop() -> None:
+    """End this process's :func:`run_nodes` as SIGINT does (a node whose work is over: the replay at the bag's
+    end). The nodes' ``close()`` then runs with the ROS context still up, so they can still publish (the
+    final mesh)."""
+    _stop.set()
+
+
 def run_nodes(makers: Sequence[Callable[[], Node | None]], args: Sequence[str] | None = None,
               multi_threaded: bool = True) -> int:
     """Run several nodes in one process on one executor (multi-threaded by default); a maker may return
     None (that node is not wanted, e.g. no bag to replay)."""
-    stop = threading.Event()
+    stop = _stop
+    stop.clear()
     previous = _stop_on_signals(stop)  # before init: a signal during start-up is a requested stop too
     rclpy.init(args=list(args) if args is not None else None, signal_handler_options=SignalHandlerOptions.NO)
     executor = None

@@ -23,7 +23,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
@@ -31,7 +30,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from neb_slam_core.datasets.bag import BagDataset
 from neb_slam_core.errors import DatasetError
 from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import WorkerNode, run_node
+from neb_slam_ros._node_main import WorkerNode, request_stop, run_node
 from neb_slam_ros.params import ParameterError, declare_options, require
 
 
@@ -144,10 +143,10 @@ class BagReplayNode(WorkerNode):
                     break
             if not self._stop.is_set():
                 self.get_logger().info(f"neb_slam bag_replay finished: {self.n_published} frames published")
-                rclpy.try_shutdown(context=self.context)  # ends the process's spin: the replay is over
+                request_stop()  # ends the process's spin: the replay is over
         except Exception as exc:  # report, and end the process rather than hang
             self.get_logger().error(f"bag_replay failed: {type(exc).__name__}: {exc}")
-            rclpy.try_shutdown(context=self.context)
+            request_stop()
 
     def _play_once(self) -> None:
         t0, stamp0 = time.monotonic(), None

@@ -7,8 +7,8 @@ consecutive keyframes) is applied once those keyframes are integrated: keyframes
 rigidly with the last, and the map is re-optimised in the paper's two stages. After each step it publishes ``map_update`` (the changed
 blocks, the decoders and the keyframe poses; layout in ``neb_slam_core/scene/map_update.py``). Every
 ``mesh_period_s`` it publishes ``mesh`` (one TRIANGLE_LIST marker per block). Services ``save_mesh`` and
-``save_map`` write ``mesh.ply`` / ``map.pt`` into ``output_dir``; on shutdown (SIGINT, SIGTERM) it writes
-``map.pt``, ``mesh.ply``, ``trajectory.txt`` (every frame of the tracker's latest ``path``, each moved
+``save_map`` write ``mesh.ply`` / ``map.pt`` into ``output_dir`` (``save_mesh`` also publishes that mesh);
+on shutdown (SIGINT, SIGTERM) it publishes the final mesh and writes ``map.pt``, ``mesh.ply``, ``trajectory.txt`` (every frame of the tracker's latest ``path``, each moved
 with the final pose of its keyframe) and ``config.yaml`` there.
 
 With ``map_file`` (a ``map.pt`` of ``save_map`` or of ``neb-slam run``) it continues that map: its
@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from nav_msgs.msg import Path as PathMsg
+from rclpy.duration import Duration
 from std_msgs.msg import UInt8MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -83,6 +84,21 @@ def split_by_block(mesh, block_map) -> dict[int, tuple[np.ndarray, np.ndarray, n
     inside = block_map.contains(centroids).cpu()
     owner = torch.where(inside.any(dim=1), inside.float().argmax(dim=1), -1).numpy()
     return {int(b): (verts, faces[owner == b], colours) for b in np.unique(owner) if b >= 0}
+
+
+#: at shutdown, how long a published mesh may wait for every subscriber's acknowledgement (the process
+#: ends right after; a reliable message not yet received would be lost with it)
+FINAL_MESH_ACK_S = 5.0
+
+
+def publish_mesh(publisher, mesh, block_map, frame_id: str, ack_timeout_s: float = 0.0) -> str:
+    """Publish ``mesh`` on ``publisher`` (the ``mesh`` topic) as one marker per block; with
+    ``ack_timeout_s``, then wait up to that long until every matched subscriber has acknowledged it.
+    Returns what was published, for the log."""
+    publisher.publish(conversions.mesh_markers(split_by_block(mesh, block_map), time.time_ns(), frame_id))
+    if ack_timeout_s > 0:
+        publisher.wait_for_all_acked(Duration(seconds=ack_timeout_s))
+    return f"{len(mesh.faces)} faces"
 
 
 class MapperNode(WorkerNode):
@@ -253,16 +269,17 @@ class MapperNode(WorkerNode):
     def _do_publish_mesh(self) -> str:
         if len(self.backend.keyframes) == 0:
             return "no keyframe yet"
-        mesh = self._mesh()
-        self.pub_mesh.publish(conversions.mesh_markers(split_by_block(mesh, self.block_map), time.time_ns(), self.opt.frame_id))
-        return f"{len(mesh.faces)} faces"
+        return publish_mesh(self.pub_mesh, self._mesh(), self.block_map, self.opt.frame_id)
 
     def _run_dir(self) -> RunDirectory:
         self.out.mkdir(parents=True, exist_ok=True)
         return RunDirectory(self.out)
 
-    def _do_save_mesh(self) -> str:
-        path = self._run_dir().write_mesh(self._mesh())
+    def _do_save_mesh(self, ack_timeout_s: float = 0.0) -> str:
+        """Write ``mesh.ply`` and publish the same mesh."""
+        mesh = self._mesh()
+        path = self._run_dir().write_mesh(mesh)
+        publish_mesh(self.pub_mesh, mesh, self.block_map, self.opt.frame_id, ack_timeout_s)
         return str(path)
 
     def _do_save_map(self) -> str:
@@ -304,7 +321,7 @@ class MapperNode(WorkerNode):
         written.append(str(run_dir.write_trajectory(traj, TRAJECTORY_FILE,
                                                     f"neb_slam mapper: {len(traj)} frames, T_world_cam")))
         try:
-            written.append(self._do_save_mesh())
+            written.append(self._do_save_mesh(ack_timeout_s=FINAL_MESH_ACK_S))
         except Exception as exc:
             final_log(self, f"mesh not written: {type(exc).__name__}: {exc}", "WARN")
         final_log(self, f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} blocks, "

@@ -6,7 +6,8 @@ input and publishes what the separate ``tracker`` and ``mapper`` publish for oth
 a ``bag`` parameter the process also runs ``bag_replay`` (its parameters: ``rate``, ``lockstep``, ``start``,
 ``count``, ``loop``) on the same executor, and ends when the bag does. On shutdown it
 writes a complete run directory into ``output_dir``, the same files as ``neb-slam run`` (trajectory,
-ground truth and ATE when ``ground_truth_topic`` is set, timings, metrics, plots, map, mesh). With
+ground truth and ATE when ``ground_truth_topic`` is set, timings, metrics, plots, map, mesh), and
+publishes the final mesh (``save_mesh`` also publishes the mesh it writes). With
 ``map_file`` it continues that map checkpoint (the first frame is tracked against it).
 
 Example::
@@ -37,6 +38,7 @@ from neb_slam_core.slam import Slam
 from neb_slam_ros import NAMESPACE, conversions, qos
 from neb_slam_ros._node_main import WorkerNode, final_log, run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
+from neb_slam_ros.mapper import FINAL_MESH_ACK_S, publish_mesh
 from neb_slam_ros.requests import Requests
 from neb_slam_ros.params import declare_config, declare_options, map_parameter, require
 
@@ -161,19 +163,18 @@ class SlamNode(WorkerNode):
     def _do_publish_mesh(self) -> str:
         if self.slam is None:
             return "no frame yet"
-        from neb_slam_ros.mapper import split_by_block
-
-        mesh = self._mesh()
-        self.pub_mesh.publish(conversions.mesh_markers(split_by_block(mesh, self.slam.block_map), time.time_ns(),
-                                                       self.opt.frame_id))
-        return f"{len(mesh.faces)} faces"
+        return publish_mesh(self.pub_mesh, self._mesh(), self.slam.block_map, self.opt.frame_id)
 
     def _run_dir(self) -> RunDirectory:
         self.out.mkdir(parents=True, exist_ok=True)
         return RunDirectory(self.out)
 
     def _do_save_mesh(self) -> str:
-        return str(self._run_dir().write_mesh(self._mesh()))
+        """Write ``mesh.ply`` and publish the same mesh."""
+        mesh = self._mesh()
+        path = self._run_dir().write_mesh(mesh)
+        publish_mesh(self.pub_mesh, mesh, self.slam.block_map, self.opt.frame_id)
+        return str(path)
 
     def _do_save_map(self) -> str:
         if self.slam is None:
@@ -198,6 +199,8 @@ class SlamNode(WorkerNode):
         options = RunOutputOptions(mesh_cfg=self.cfg.mesh, first_pose_from_gt=first_gt, progress=False)
         wall_s = time.perf_counter() - (self._t_first or time.perf_counter())
         summary = write_run(run_dir, self.slam, self.run_log, options, "complete", wall_s)
+        if summary.mesh is not None:  # the final mesh, also to the topic's subscribers
+            publish_mesh(self.pub_mesh, summary.mesh, self.slam.block_map, self.opt.frame_id, FINAL_MESH_ACK_S)
         m = summary.metrics
         ate = f", ATE {m['ate_rmse_cm']:.3f} cm" if "ate_rmse_cm" in m else ""
         final_log(self, f"neb_slam slam stopped: {self.slam.n_frames} frames, {m.get('n_blocks')} blocks, "

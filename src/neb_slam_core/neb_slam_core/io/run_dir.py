@@ -154,6 +154,7 @@ class RunSummary:
     metrics: dict
     written: list[Path] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
+    mesh: object = None  #: the mesh written to mesh.ply (a trimesh.Trimesh), None when none was
 
 
 class RunDirectory:
@@ -401,6 +402,7 @@ def write_run(run_dir: RunDirectory, slam: "Slam", run_log: RunLog, options: Run
         skip("mesh", "the map's SDF has no surface near the observed points")
         return summary
     summary.written.append(run_dir.write_mesh(mesh))
+    summary.mesh = mesh
 
     if options.gt_mesh is not None:
         metrics.update(_recon_metrics(run_dir, gt, ate, options, skip))

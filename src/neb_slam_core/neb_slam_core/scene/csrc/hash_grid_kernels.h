@@ -302,7 +302,8 @@ void forward_blocks(const T* xw, const T* centres, const std::vector<const T*>& 
           if constexpr (kJacobian) {
             const T ratio = blend > T(0) ? to_face / blend : T(1);
             const bool sloped = ratio > T(1e-6) && ratio < T(1);
-            // the axis torch's amax would pick (the first of equal maxima); its gradient goes there
+            // the axis of the largest offset, whose face is the nearest (ties, a set of measure zero, go
+            // to the first axis; torch's amax would split the gradient between them)
             const int axis = (ax >= ay && ax >= az) ? 0 : (ay >= az ? 1 : 2);
             const T delta[3] = {dx, dy, dz};
             for (int d = 0; d < 3; ++d) {

@@ -33,7 +33,6 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import subprocess
@@ -42,6 +41,7 @@ import time
 from pathlib import Path
 
 from neb_slam_core.config_io import load_config
+from neb_slam_core.io.run_dir import TIMINGS_FILE, read_timings
 from neb_slam_core.scene.block_map import BlockMap
 from neb_slam_core.synth.generate import generate
 
@@ -61,21 +61,18 @@ def source_of(sequence: str) -> Path:
     return generate(sequence, REPO / ".cache" / "scenes" / sequence, progress=True)
 
 
-def loop_and_speed_figures(run_dir: Path) -> dict:
-    """``loops_applied``, ``loop_s_per_frame`` and ``first_frame_s`` from the run directory's
-    ``timings.csv`` and ``loops.json`` (see the module docstring); {} when the run wrote no timings."""
-    timings = run_dir / "timings.csv"
-    if not timings.is_file():
+def loop_and_speed_figures(run_dir: Path, metrics: dict) -> dict:
+    """``loops_applied`` and ``loop_s_per_frame`` from the run's ``metrics``, ``first_frame_s`` from its
+    ``timings.csv`` (see the module docstring); {} when the run wrote no timings."""
+    if not (run_dir / TIMINGS_FILE).is_file():
         return {}
-    with timings.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = read_timings(run_dir / TIMINGS_FILE)
     if not rows:
         return {}
-    loops = run_dir / "loops.json"
-    applied = sum(bool(e.get("applied")) for e in json.loads(loops.read_text())) if loops.is_file() else 0
+    loop_ms = metrics.get("loop_ms_mean")
     return {
-        "loops_applied": applied,
-        "loop_s_per_frame": round(sum(float(r["loop_ms"] or 0.0) for r in rows) / len(rows) / 1e3, 3),
+        "loops_applied": metrics.get("n_loops_applied"),
+        "loop_s_per_frame": None if loop_ms is None else round(loop_ms / 1e3, 3),
         "first_frame_s": round(float(rows[0]["total_ms"]) / 1e3, 2),
     }
 
@@ -127,7 +124,7 @@ def main() -> None:
         "block_mb": round(block_mb, 3),
         "decoder_mb": round(decoder_mb, 3),
         "n_tracking_failures": metrics.get("n_tracking_failures"),
-        **loop_and_speed_figures(out),
+        **loop_and_speed_figures(out, metrics),
         "load_average_before": round(load_before, 2),
         "cpus": os.cpu_count(),
         "run_dir": str(out),

@@ -1,6 +1,6 @@
-"""The nodes' shared base: a worker thread that publishes after the context was shut down (by the replay's
-end or elsewhere in the process, while a mapping step or loop re-optimisation still runs) is not killed
-by rclpy's error."""
+"""The nodes' shared base: a worker thread that publishes after the context was shut down (elsewhere in
+the process, while a mapping step or loop re-optimisation still runs), or a ``close()`` that publishes
+the final mesh and waits for its acknowledgement then, is not killed by rclpy's error."""
 
 from __future__ import annotations
 
@@ -27,9 +27,13 @@ def test_publishing_after_shutdown_is_dropped_not_raised(ros_env, monkeypatch):
     ours = WorkerNode("ours", context=context)
     pub_plain = plain.create_publisher(String, "chatter", 1)
     pub_ours = ours.create_publisher(String, "chatter", 1)
+    from rclpy.duration import Duration
+
     pub_ours.publish(String(data="while up"))  # a working publisher
+    assert pub_ours.wait_for_all_acked(Duration(seconds=1.0)) is True  # no subscriber: nothing to wait for
     assert pub_ours.get_subscription_count() == 0 and pub_ours.topic_name == "/chatter"
     rclpy.shutdown(context=context)
     with pytest.raises(RCLError):
         pub_plain.publish(String(data="after shutdown"))  # what killed the mapper's worker
     pub_ours.publish(String(data="after shutdown"))       # dropped quietly
+    assert pub_ours.wait_for_all_acked(Duration(seconds=1.0)) is False  # close()'s wait for the final mesh

@@ -3,8 +3,9 @@
 Ctrl-C (SIGINT), SIGTERM (what ``ros2 launch`` and systemd send) and a shutdown requested from elsewhere
 all end the process with status 0 and no traceback, whenever they arrive once ``run_nodes`` runs (and,
 for the executables, which start through :mod:`neb_slam_ros._launch`, while their modules import). A node
-with a ``close()`` method gets it called once spinning ends (it writes its output there: the ROS
-context may already be shut down, so ``close`` must not publish). A bad parameter ends the process
+with a ``close()`` method gets it called once spinning ends (it writes its output there, and may
+publish a last message: the context is still up after a signal or :func:`request_stop`; if something
+else shut it down, our nodes' publishers drop the message instead of raising). A bad parameter ends the process
 with status 2 and one line naming the parameter.
 
 Order of the shutdown: a signal only asks the spin loop to stop (our handler, not rclpy's, which would
@@ -39,9 +40,9 @@ except ImportError:  # pragma: no cover - layout of other rclpy builds
 
 class _PublisherWhileUp:
     """A publisher that drops its messages once the node's context is shut down. Something else may shut
-    the context down (``rclpy.shutdown`` elsewhere in the process, the replay ending) while a worker
-    thread is still busy (a mapping step, a loop re-optimisation); what it publishes then has no
-    receiver, and rclpy would raise in the worker and kill it."""
+    the context down (``rclpy.shutdown`` elsewhere in the process) while a worker thread is still busy (a
+    mapping step, a loop re-optimisation) or ``close()`` publishes the final mesh; what it publishes then
+    has no receiver, and rclpy would raise."""
 
     def __init__(self, publisher, context):
         self._publisher = publisher
@@ -53,6 +54,15 @@ class _PublisherWhileUp:
         except RCLError:
             if self._context.ok():
                 raise
+
+    def wait_for_all_acked(self, timeout) -> bool:
+        """rclpy's, or False at once when the context is shut down (nothing can be acknowledged then)."""
+        try:
+            return self._context.ok() and self._publisher.wait_for_all_acked(timeout)
+        except RCLError:
+            if self._context.ok():
+                raise
+            return False
 
     def __getattr__(self, name):
         return getattr(self._publisher, name)
@@ -114,9 +124,8 @@ def run_nodes(makers: Sequence[Callable[[], Node | None]], args: Sequence[str] |
               multi_threaded: bool = True) -> int:
     """Run several nodes in one process on one executor (multi-threaded by default); a maker may return
     None (that node is not wanted, e.g. no bag to replay)."""
-    stop = _stop
-    stop.clear()
-    previous = _stop_on_signals(stop)  # before init: a signal during start-up is a requested stop too
+    _stop.clear()
+    previous = _stop_on_signals(_stop)  # before init: a signal during start-up is a requested stop too
     rclpy.init(args=list(args) if args is not None else None, signal_handler_options=SignalHandlerOptions.NO)
     executor = None
     nodes: list[Node] = []
@@ -132,7 +141,7 @@ def run_nodes(makers: Sequence[Callable[[], Node | None]], args: Sequence[str] |
                 executor.add_node(node)
         # spin in slices rather than executor.spin(): the signal handler runs in Python, between slices,
         # so a stop is acted on within one
-        while rclpy.ok() and not stop.is_set():
+        while rclpy.ok() and not _stop.is_set():
             executor.spin_once(timeout_sec=SPIN_SLICE_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # a second Ctrl-C during start-up, or the context shut down elsewhere

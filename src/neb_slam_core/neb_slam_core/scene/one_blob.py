@@ -33,25 +33,26 @@ from . import _ext
 from .hash_grid import BACKENDS, DTYPE_CODES
 
 
-def encode_reference(points_world: Tensor, n_bins: int, period_m: float) -> Tensor:
-    """``(N, 3)`` world points -> ``(N, 3 * n_bins)`` codes, axis-major, in plain torch."""
+def _offsets_and_codes(points_world: Tensor, n_bins: int, period_m: float) -> tuple[Tensor, Tensor]:
+    """``(N, 3, K)`` signed offsets of each axis' phase from the bin centres on the unit circle (in
+    [-1/2, 1/2]) and the codes they give."""
     centres = (torch.arange(n_bins, dtype=points_world.dtype, device=points_world.device) + 0.5) / n_bins
     phase = torch.remainder(points_world / period_m, 1.0)  # (N, 3)
-    d = (phase[..., None] - centres).abs()  # (N, 3, K)
-    d = torch.minimum(d, 1.0 - d)  # distance on the circle
-    code = torch.exp(-0.5 * (d * n_bins) ** 2)  # sigma = 1 / K
-    return code.flatten(-2)
+    s = phase[..., None] - centres  # (N, 3, K)
+    s = s - torch.round(s)  # the shorter way round the circle
+    return s, torch.exp(-0.5 * (s * n_bins) ** 2)  # sigma = 1 / K
+
+
+def encode_reference(points_world: Tensor, n_bins: int, period_m: float) -> Tensor:
+    """``(N, 3)`` world points -> ``(N, 3 * n_bins)`` codes, axis-major, in plain torch."""
+    return _offsets_and_codes(points_world, n_bins, period_m)[1].flatten(-2)
 
 
 def encode_with_slopes(points_world: Tensor, n_bins: int, period_m: float) -> tuple[Tensor, Tensor]:
     """The codes ``(N, 3 * n_bins)`` of ``(N, 3)`` world points and their slopes ``(N, 3, n_bins)``: entry
     ``[n, a, j]`` is ``d code[n, a * n_bins + j] / d x[n, a]`` (a code depends on its own axis only), in plain
-    torch: ``-K^2 s code / period`` with ``s`` the signed phase offset from the bin centre on the circle."""
-    centres = (torch.arange(n_bins, dtype=points_world.dtype, device=points_world.device) + 0.5) / n_bins
-    phase = torch.remainder(points_world / period_m, 1.0)  # (N, 3)
-    s = phase[..., None] - centres  # (N, 3, K)
-    s = s - torch.round(s)  # signed offset on the unit circle, in [-1/2, 1/2]
-    code = torch.exp(-0.5 * (s * n_bins) ** 2)
+    torch: ``-K^2 s code / period`` with ``s`` the signed phase offset from the bin centre."""
+    s, code = _offsets_and_codes(points_world, n_bins, period_m)
     return code.flatten(-2), (-(n_bins * n_bins) / period_m) * s * code
 
 

@@ -14,6 +14,7 @@
 #include <cstdint>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "hash_grid_kernels.h"
@@ -125,14 +126,15 @@ void forward_blocks_typed(uintptr_t xw, uintptr_t centres, const std::vector<uin
                           const std::vector<Level>& levels, int n_threads) {
   std::vector<const T*> tabs;
   for (uintptr_t t : tables) tabs.push_back(as_ptr<const T>(t));
+  const auto run = [&](auto with_jacobian) {  // std::true_type / std::false_type: the kernel's kJacobian
+    neb_hash_grid::forward_blocks<T, F, decltype(with_jacobian)::value>(
+        as_ptr<const T>(xw), as_ptr<const T>(centres), tabs, static_cast<T>(edge), static_cast<T>(blend),
+        as_ptr<T>(out), as_ptr<uint8_t>(valid), as_ptr<T>(jac), n, levels, n_threads);
+  };
   if (jac)
-    neb_hash_grid::forward_blocks<T, F, true>(as_ptr<const T>(xw), as_ptr<const T>(centres), tabs,
-                                              static_cast<T>(edge), static_cast<T>(blend), as_ptr<T>(out),
-                                              as_ptr<uint8_t>(valid), as_ptr<T>(jac), n, levels, n_threads);
+    run(std::true_type{});
   else
-    neb_hash_grid::forward_blocks<T, F, false>(as_ptr<const T>(xw), as_ptr<const T>(centres), tabs,
-                                               static_cast<T>(edge), static_cast<T>(blend), as_ptr<T>(out),
-                                               as_ptr<uint8_t>(valid), nullptr, n, levels, n_threads);
+    run(std::false_type{});
 }
 
 // xw (n, 3) world points, centres (M, 3), tables: M addresses of (E, F) tables with one level layout,

@@ -69,7 +69,7 @@ def track_every_step(tracker_cfg, render_cfg, block_map, frame, T0) -> None:
         T = np.array(T0, dtype=np.float64)
         ev = evaluate_pose(block_map, px, T, z, render_cfg, ids)
         for _ in range(tracker_cfg.iterations):
-            H, g = normal_equations(ev, block_map, ids, render_cfg.truncation_m)
+            H, g = normal_equations(ev, block_map, ids)
             T = apply_step(T, damped_step(H, g, tracker_cfg.gn_damping))
             ev = evaluate_pose(block_map, px, T, z, render_cfg, ids)
 

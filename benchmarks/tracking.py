@@ -60,7 +60,6 @@ def main() -> None:
     ne_ms = {way: [] for way in ways}
     rel = {"closed": [], "fd": []}
     ev_ms = []
-    tr = cfg.render.truncation_m
     with frozen(block_map):
         for f, T in zip(tracked, starts):
             px = sample_pixels(f, cfg.tracking.n_rays, rng, valid_depth_only=True)
@@ -70,10 +69,10 @@ def main() -> None:
             ev = evaluate_pose(block_map, px, T, z, cfg.render, ids)
             for _ in range(args.repeats):  # the ways interleaved, so that drifts of the machine's speed hit all
                 for way, gradients in ways.items():
-                    ne_ms[way].append(median_ms(lambda: normal_equations(ev, block_map, ids, tr, gradients), 1))
-            H_auto, _ = normal_equations(ev, block_map, ids, tr, spatial_gradients_autograd)
+                    ne_ms[way].append(median_ms(lambda: normal_equations(ev, block_map, ids, gradients), 1))
+            H_auto, _ = normal_equations(ev, block_map, ids, spatial_gradients_autograd)
             for way in rel:
-                H, _ = normal_equations(ev, block_map, ids, tr, ways[way])
+                H, _ = normal_equations(ev, block_map, ids, ways[way])
                 rel[way].append(float(np.abs(H - H_auto).max() / np.abs(H_auto).max()))
 
     track_ms, steps, gaps = [], [], []

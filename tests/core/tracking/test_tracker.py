@@ -53,7 +53,7 @@ def test_normal_equations_equal_autograd_gradient_of_the_objective(fitted_small_
     z = sample_depths(px.depth_m, fm.render.sampling, generator=torch.Generator().manual_seed(2))
     with frozen(fm.block_map):
         ev = evaluate_pose(fm.block_map, px, T, z, fm.render, None)
-        H, g = normal_equations(ev, fm.block_map, None, fm.render.truncation_m)
+        H, g = normal_equations(ev, fm.block_map, None)
         pose = PoseSet(T)
         loss, _ = objective(fm.block_map, px.to_world(pose.matrices()[0]), fm.render, None, with_smoothness=False, z=z)
         loss.total.backward()

@@ -1,9 +1,25 @@
-"""The five losses of the paper, as pure functions of rendered and observed quantities.
+"""The paper's objective, defined once: each loss is a :class:`Residual` term, and both optimisers read
+the same terms.
 
-Units follow Co-SLAM, whose weights the paper adopts: the SDF loss compares metric signed distances
-(``tr * sdf`` against ``d_obs - z``), the free-space loss compares the normalised prediction with 1
-(the truncation distance). Per the paper, the SDF and free-space losses average over each ray's samples
-first and then over the rays with valid depth.
+A term is a tensor of residuals ``r`` (one row per ray, ``K`` entries per row: colour channels, samples
+along the ray, neighbour differences), a mask of the entries that count, and the term's weight. Its loss
+is the mean (or sum) of ``r^2`` over each row's masked entries, then the mean over the rows that have
+at least one: for the SDF and free-space terms that is the paper's "mean over each ray's samples, then
+over the rays". The objective is the weighted sum of the terms' losses.
+
+- Adam (mapping, and the paper's tracking) back-propagates through :meth:`Objective.total`.
+- Gauss-Newton tracking (:mod:`neb_slam_core.tracking.gauss_newton`) reads each term's residuals, its
+  per-entry weights (:meth:`Residual.entry_weights`, which make ``sum(w r^2)`` the weighted loss) and
+  what the residual is an affine function of (``source`` and ``slope``): the rendered colour, the
+  rendered depth or the samples' SDF. It needs no code of its own for a new term of one of those kinds.
+
+Units follow Co-SLAM, whose weights the paper adopts: the SDF term compares metric signed distances
+(``tr * sdf`` against ``d_obs - z``), the free-space term compares the normalised prediction with 1
+(the truncation distance).
+
+A new loss: a weight in :class:`~neb_slam_core.config.LossWeights` (and ``configs/base.yaml``), and one
+entry in :func:`render_residuals` (or a builder like :func:`smoothness_residual` for a term that is not
+rendered along rays).
 """
 
 from __future__ import annotations
@@ -14,75 +30,120 @@ import torch
 
 from ..config import LossWeights
 
+#: what a term's residuals can be an affine function of: the rays' rendered colour (R, 3) and depth
+#: (R,), the samples' predicted SDF (R, S); None: the term does not depend on the camera pose
+SOURCES = ("rgb", "depth", "sdf", None)
+
 
 @dataclass
-class LossTerms:
-    """The five losses (scalars) and their weighted sum."""
+class Residual:
+    """One term of the objective.
 
-    colour: torch.Tensor
-    depth: torch.Tensor
-    sdf: torch.Tensor
-    free_space: torch.Tensor
-    smoothness: torch.Tensor
+    Attributes:
+        r: ``(R, K)`` residuals.
+        mask: ``(R, K)`` bool, the entries that count.
+        weight: the term's weight in the objective.
+        source: what ``r`` is an affine function of (one of :data:`SOURCES`), with ``K`` its entries per row.
+        slope: ``d r / d source`` (a scalar).
+        per_row: ``"mean"`` or ``"sum"`` of each row's masked squared entries.
+        active_above: the Gauss-Newton model takes a masked entry into its matrix only where ``|r|``
+            exceeds this (0: every masked entry); the cost a step is judged by always has them all.
+    """
+
+    r: torch.Tensor
+    mask: torch.Tensor
+    weight: float
+    source: str | None
+    slope: float = 1.0
+    per_row: str = "mean"
+    active_above: float = 0.0
+
+    def _counts(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        m = self.mask.to(self.r.dtype)
+        n = m.sum(dim=-1)
+        rows = (n > 0).to(self.r.dtype)
+        return m, n, rows
+
+    def value(self) -> torch.Tensor:
+        """The term's loss (a scalar, without its weight)."""
+        m, n, rows = self._counts()
+        per_row = (self.r * self.r * m).sum(dim=-1)
+        if self.per_row == "mean":
+            per_row = per_row / n.clamp(min=1)
+        return (per_row * rows).sum() / rows.sum().clamp(min=1)
+
+    def entry_weights(self) -> torch.Tensor:
+        """``(R, K)`` weights ``w`` with ``sum(w r^2) = weight * value()`` (0 off the mask)."""
+        m, n, rows = self._counts()
+        per_entry = m / (n.clamp(min=1)[:, None] if self.per_row == "mean" else 1.0)
+        return (self.weight / rows.sum().clamp(min=1)) * per_entry
+
+
+@dataclass
+class Objective:
+    """The terms of the objective, their losses and the weighted total."""
+
+    terms: dict[str, Residual]
+    values: dict[str, torch.Tensor]
     total: torch.Tensor
 
     def as_floats(self) -> dict[str, float]:
-        return {k: float(getattr(self, k).detach()) for k in ("colour", "depth", "sdf", "free_space", "smoothness", "total")}
+        out = {name: float(v.detach()) for name, v in self.values.items()}
+        out["total"] = float(self.total.detach())
+        return out
 
 
-def colour_loss(rgb_pred: torch.Tensor, rgb_obs: torch.Tensor, ray_mask: torch.Tensor) -> torch.Tensor:
-    """Mean squared colour error over the rays in ``ray_mask``: ``(R, 3)``, ``(R, 3)``, ``(R,)`` -> scalar."""
-    m = ray_mask.to(rgb_pred.dtype)
-    return (((rgb_pred - rgb_obs) ** 2).mean(dim=-1) * m).sum() / m.sum().clamp(min=1)
+def combine(terms: dict[str, Residual]) -> Objective:
+    """The objective of ``terms``: each term's loss and the weighted sum (in the terms' order)."""
+    values = {name: term.value() for name, term in terms.items()}
+    total = None
+    for name, term in terms.items():
+        part = term.weight * values[name]
+        total = part if total is None else total + part
+    if total is None:
+        raise ValueError("an objective needs at least one term")
+    return Objective(terms, values, total)
 
 
-def depth_loss(depth_pred: torch.Tensor, depth_obs: torch.Tensor, ray_mask: torch.Tensor) -> torch.Tensor:
-    """Mean squared depth error over rays with valid depth in ``ray_mask``: ``(R,)`` x3 -> scalar (m^2)."""
-    m = (ray_mask & (depth_obs > 0)).to(depth_pred.dtype)
-    return (((depth_pred - depth_obs) ** 2) * m).sum() / m.sum().clamp(min=1)
-
-
-def sdf_losses(sdf: torch.Tensor, z: torch.Tensor, depth_obs: torch.Tensor, sample_valid: torch.Tensor,
-               truncation_m: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """SDF loss in the truncation band and free-space loss in front of it.
+def render_residuals(weights: LossWeights, truncation_m: float, rgb: torch.Tensor, depth_m: torch.Tensor,
+                     sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, observed: torch.Tensor,
+                     rgb_obs: torch.Tensor, depth_obs: torch.Tensor) -> dict[str, Residual]:
+    """The four rendering terms of ``R`` rays with ``S`` samples each.
 
     Args:
-        sdf: ``(R, S)`` predicted SDF in truncation units.
-        z: ``(R, S)`` sample depths.
-        depth_obs: ``(R,)`` observed depth (0 invalid; such rays are ignored).
-        sample_valid: ``(R, S)`` bool.
+        rgb, depth_m: ``(R, 3)``, ``(R,)`` rendered colour and depth.
+        sdf: ``(R, S)`` predicted SDF in truncation units; ``z``: ``(R, S)`` sample depths.
+        sample_valid: ``(R, S)`` bool, the sample lies in a consulted block.
+        observed: ``(R,)`` bool, the ray counts for colour and depth
+            (:func:`~neb_slam_core.render.volume.observed_rays`).
+        rgb_obs, depth_obs: ``(R, 3)``, ``(R,)`` measurements (depth 0: invalid, the ray's depth, SDF and
+            free-space terms ignore it).
     Returns:
-        (L_sdf in m^2, L_fs in truncation units^2). Samples behind the band are unconstrained (the
-        surface may hide anything there), as in Co-SLAM.
+        ``colour`` (per ray, the mean over channels), ``depth`` (m^2), ``sdf`` (m^2, samples within the
+        truncation band of the measured depth) and ``free_space`` (truncation units^2, samples in front of
+        the band). Samples behind the band are unconstrained (the surface may hide anything there), as
+        in Co-SLAM.
     """
-    has_depth = (depth_obs > 0)[:, None]
+    tr = truncation_m
+    has_depth = depth_obs > 0
     obs_sdf = depth_obs[:, None] - z  # metres, positive in front of the surface
-    band = sample_valid & has_depth & (obs_sdf.abs() <= truncation_m)
-    front = sample_valid & has_depth & (obs_sdf > truncation_m)
-    l_sdf = _per_ray_mean((sdf * truncation_m - obs_sdf) ** 2, band)
-    l_fs = _per_ray_mean((sdf - 1.0) ** 2, front)
-    return l_sdf, l_fs
+    band = sample_valid & has_depth[:, None] & (obs_sdf.abs() <= tr)
+    front = sample_valid & has_depth[:, None] & (obs_sdf > tr)
+    return {
+        "colour": Residual(rgb - rgb_obs, observed[:, None].expand(-1, 3), weights.colour, "rgb"),
+        "depth": Residual((depth_m - depth_obs)[:, None], (observed & has_depth)[:, None], weights.depth, "depth"),
+        "sdf": Residual(sdf * tr - obs_sdf, band, weights.sdf, "sdf", slope=tr),
+        # a satisfied free-space sample barely moves the pose; of the many in front of the surface, only
+        # the violated ones enter the Gauss-Newton matrix
+        "free_space": Residual(sdf - 1.0, front, weights.free_space, "sdf", active_above=1e-2),
+    }
 
 
-def _per_ray_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean over each ray's masked samples, then over rays with at least one: ``(R, S)`` -> scalar."""
-    m = mask.to(values.dtype)
-    n = m.sum(dim=-1)
-    per_ray = (values * m).sum(dim=-1) / n.clamp(min=1)
-    rays = (n > 0).to(values.dtype)
-    return (per_ray * rays).sum() / rays.sum().clamp(min=1)
-
-
-def smoothness_loss(features: torch.Tensor, neighbours: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+def smoothness_residual(weight: float, features: torch.Tensor, neighbours: torch.Tensor,
+                        valid: torch.Tensor) -> Residual:
     """Feature smoothness: ``(G, D)`` features at random points, ``(G, 3, D)`` at the points shifted by one
-    step along x, y, z; mean over valid points of the summed squared differences."""
-    diff = ((neighbours - features[:, None, :]) ** 2).sum(dim=(-1, -2))
-    m = valid.to(diff.dtype)
-    return (diff * m).sum() / m.sum().clamp(min=1)
-
-
-def combine(weights: LossWeights, colour: torch.Tensor, depth: torch.Tensor, sdf: torch.Tensor,
-            free_space: torch.Tensor, smoothness: torch.Tensor) -> LossTerms:
-    total = (weights.colour * colour + weights.depth * depth + weights.sdf * sdf
-             + weights.free_space * free_space + weights.smoothness * smoothness)
-    return LossTerms(colour, depth, sdf, free_space, smoothness, total)
+    step along x, y, z; per point the summed squared differences, then the mean over ``valid`` points.
+    Independent of the camera pose."""
+    g = features.shape[0]
+    diff = (neighbours - features[:, None, :]).reshape(g, -1)
+    return Residual(diff, valid[:, None].expand_as(diff), weight, None, per_row="sum")

@@ -6,7 +6,7 @@ import torch
 
 from ..config import RenderConfig, SamplingConfig
 from ..scene.block_map import BlockMap, MapSample
-from .losses import LossTerms, colour_loss, combine, depth_loss, sdf_losses, smoothness_loss
+from .losses import Objective, Residual, combine, render_residuals, smoothness_residual
 from .rays import RayBatch
 from .sampling import evaluated_samples, sample_depths
 from .volume import RenderOutput, composite, observed_rays, sdf_weights
@@ -53,12 +53,13 @@ def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_id
 
 
 def smoothness_term(block_map: BlockMap, cfg: RenderConfig, block_ids: list[int] | None,
-                    generator: torch.Generator | None = None) -> torch.Tensor:
-    """Feature smoothness on ``cfg.smoothness_points`` random points of random consulted blocks."""
+                    generator: torch.Generator | None = None) -> Residual | None:
+    """Feature smoothness on ``cfg.smoothness_points`` random points of random consulted blocks (None when
+    the term is off or no block is consulted)."""
     ids = list(range(len(block_map))) if block_ids is None else list(block_ids)
     g = cfg.smoothness_points
     if not ids or g == 0 or cfg.weights.smoothness == 0:
-        return block_map.centres().new_zeros(())
+        return None
     dev = block_map.device
     which = torch.randint(len(ids), (g,), device=dev, generator=generator)
     centres = block_map.centres()[torch.as_tensor(ids, device=dev)[which]]
@@ -71,17 +72,18 @@ def smoothness_term(block_map: BlockMap, cfg: RenderConfig, block_ids: list[int]
     feats, valid = block_map.grid_features(pts, ids)
     f0, f1 = feats[:g], feats[g:].reshape(g, 3, -1)
     v = valid[:g] & valid[g:].reshape(g, 3).all(dim=1)
-    return smoothness_loss(f0, f1, v)
+    return smoothness_residual(cfg.weights.smoothness, f0, f1, v)
 
 
 def objective(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
               generator: torch.Generator | None = None, with_smoothness: bool = True,
-              z: torch.Tensor | None = None) -> tuple[LossTerms, RenderOutput]:
+              z: torch.Tensor | None = None) -> tuple[Objective, RenderOutput]:
     """Render ``rays`` and evaluate the paper's weighted objective on them (at sample depths ``z`` when
     given, else stratified ones)."""
     out = render_rays(block_map, rays, cfg, block_ids, stratified=True, generator=generator, z=z)
-    l_c = colour_loss(out.rgb, rays.rgb, out.observed)
-    l_d = depth_loss(out.depth_m, rays.depth_m, out.observed)
-    l_sdf, l_fs = sdf_losses(out.sdf, out.z, rays.depth_m, out.sample_valid, cfg.truncation_m)
-    l_s = smoothness_term(block_map, cfg, block_ids, generator) if with_smoothness else l_c.new_zeros(())
-    return combine(cfg.weights, l_c, l_d, l_sdf, l_fs, l_s), out
+    terms = render_residuals(cfg.weights, cfg.truncation_m, out.rgb, out.depth_m, out.sdf, out.z, out.sample_valid,
+                             out.observed, rays.rgb, rays.depth_m)
+    smooth = smoothness_term(block_map, cfg, block_ids, generator) if with_smoothness else None
+    if smooth is not None:
+        terms["smoothness"] = smooth
+    return combine(terms), out

@@ -26,8 +26,11 @@ The Jacobian of every residual in the 6 pose parameters is built without 6 passe
   rendering weights, whose slopes have a closed form (:func:`~neb_slam_core.render.volume.sdf_weight_slopes`):
   ``d depth_i / d sdf_ij = a_ij (z_ij - depth_i)``, and likewise per colour channel.
 
-Only the samples that move the objective (see :func:`evaluate_pose`) get a spatial gradient, and the
-Jacobians are assembled on those samples alone, then summed per ray.
+The residuals and their weights are the objective's own terms
+(:func:`~neb_slam_core.render.losses.render_residuals`): each is an affine function of the rendered
+colour, the rendered depth or the samples' SDF, whose Jacobians are built here once. Only the samples
+that move the objective (see :func:`evaluate_pose`) get a spatial gradient, and the Jacobians are
+assembled on those samples alone, then summed per ray.
 
 Torch has no batched per-residual Jacobian for a custom C++ autograd function (no forward mode in the
 hash-grid kernel), hence this chain rule by hand; :func:`normal_equations` is checked against autograd's
@@ -43,6 +46,7 @@ import torch
 
 from ..config import RenderConfig
 from ..geometry.lie import compose_delta
+from ..render.losses import Residual, combine, render_residuals
 from ..render.rays import PixelSamples
 from ..render.renderer import query_samples
 from ..render.volume import composite, observed_rays, sdf_weight_slopes
@@ -72,11 +76,7 @@ class PoseEvaluation:
     depth: torch.Tensor  # (R,) rendered
     colour: torch.Tensor  # (R, 3) rendered
     active: torch.Tensor  # (R, S) samples whose spatial gradient enters the model
-    residuals: dict[str, tuple[torch.Tensor, torch.Tensor]]  # term -> (residuals, per-residual weights)
-
-
-#: the terms with one residual per sample (R, S); the others have one per ray (and colour channel)
-SAMPLE_TERMS = ("sdf", "free_space")
+    terms: dict[str, Residual]  # the objective's terms at this pose
 
 
 def _pose_jacobian(grad_p: torch.Tensor, lever: torch.Tensor) -> torch.Tensor:
@@ -129,20 +129,13 @@ def spatial_gradients_autograd(block_map: BlockMap, points: torch.Tensor,
     return torch.stack(grads)
 
 
-def _per_sample_weights(mask: torch.Tensor, weight: float) -> torch.Tensor:
-    """Weights that turn a sum over masked samples into the losses' mean per ray, then over rays."""
-    per_ray = mask.sum(dim=-1).to(torch.float32)
-    n_rays = (per_ray > 0).sum().clamp(min=1).to(torch.float32)
-    return weight * mask.to(torch.float32) / (per_ray.clamp(min=1)[:, None] * n_rays)
-
-
 def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.ndarray, z: torch.Tensor,
                   cfg: RenderConfig, block_ids: list[int] | None) -> PoseEvaluation:
     """The tracking objective at ``T_world_cam`` with fixed sample depths ``z`` (R, S).
 
-    The residuals mirror :mod:`neb_slam_core.render.losses` term for term (same masks, same
-    normalisation), so ``cost`` equals ``objective(...).total`` without smoothness for the same ``z``.
-    Call it with the map's parameters frozen.
+    The residuals are the objective's terms (:func:`~neb_slam_core.render.losses.render_residuals`), so
+    ``cost`` equals ``objective(...).total`` without smoothness for the same ``z``. Call it with the map's
+    parameters frozen.
     """
     T = torch.as_tensor(T_world_cam, dtype=torch.float32, device=z.device)
     rays = pixels.to_world(T)
@@ -158,33 +151,31 @@ def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.nda
     tr = cfg.truncation_m
     w, slopes = sdf_weight_slopes(sd, z, valid, tr)
     depth, colour = composite(w, z, c)
-
     obs_d = pixels.depth_m
     ray_valid = observed_rays(valid, z, obs_d, tr)
-    m_d = ray_valid & (obs_d > 0)
-    obs_sdf = obs_d[:, None] - z
-    band = valid & (obs_d > 0)[:, None] & (obs_sdf.abs() <= tr)
-    front = valid & (obs_d > 0)[:, None] & (obs_sdf > tr)
-    lw = cfg.weights
-    w_c = (lw.colour / (3.0 * ray_valid.sum().clamp(min=1))) * ray_valid.to(torch.float32)  # per channel
-    residuals = {
-        "colour": (colour - pixels.rgb, w_c[:, None].expand(-1, 3)),
-        "depth": (depth - obs_d, (lw.depth / m_d.sum().clamp(min=1)) * m_d.to(torch.float32)),
-        "sdf": (tr * sd - obs_sdf, _per_sample_weights(band, lw.sdf)),  # metres
-        "free_space": (sd - 1.0, _per_sample_weights(front, lw.free_space)),  # truncation units
-    }
-    cost = float(sum((wt * r * r).sum() for r, wt in residuals.values()))
-    # Spatial gradients are needed only where a sample moves the objective: inside the band, carrying
-    # rendering weight, or in violated free space. Elsewhere a residual's Jacobian is ~0; leaving those
+    terms = render_residuals(cfg.weights, tr, colour, depth, sd, z, valid, ray_valid, pixels.rgb, obs_d)
+    cost = float(combine(terms).total)
+    # Spatial gradients are needed only where a sample moves the objective: carrying rendering weight, or
+    # an active entry of a term on the samples' SDF. Elsewhere a residual's Jacobian is ~0; leaving those
     # samples out only coarsens the Gauss-Newton matrix, never the cost a step is judged by.
-    active = band | (valid & (w > 1e-4)) | (front & (residuals["free_space"][0].abs() > 1e-2))
-    resid = float(residuals["depth"][0][m_d].abs().median()) if bool(m_d.any()) else float("inf")
-    return PoseEvaluation(cost, int(ray_valid.sum()), resid, T, points, z, c, w, slopes, depth, colour, active,
-                          residuals)
+    active = valid & (w > 1e-4)
+    for term in terms.values():
+        if term.source == "sdf":
+            active = active | _active_entries(term)
+    m_d = ray_valid & (obs_d > 0)
+    resid = float((depth - obs_d)[m_d].abs().median()) if bool(m_d.any()) else float("inf")
+    return PoseEvaluation(cost, int(ray_valid.sum()), resid, T, points, z, c, w, slopes, depth, colour, active, terms)
+
+
+def _active_entries(term: Residual) -> torch.Tensor:
+    """The masked entries of ``term`` that enter the Gauss-Newton matrix (``Residual.active_above``)."""
+    if term.active_above == 0:
+        return term.mask
+    return term.mask & (term.r.abs() > term.active_above)
 
 
 def normal_equations(ev: PoseEvaluation, block_map: BlockMap, block_ids: list[int] | None,
-                     truncation_m: float, gradients=spatial_gradients) -> tuple[np.ndarray, np.ndarray]:
+                     gradients=spatial_gradients) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton system at ``ev``: ``H = J^T W J`` (6, 6) and ``g = J^T W r`` (6,), float64; ``2 g`` is
     the objective's gradient in (omega, dt). ``gradients``: how the samples' spatial gradients are
     computed (:func:`spatial_gradients`, or its autograd reference)."""
@@ -200,18 +191,23 @@ def normal_equations(ev: PoseEvaluation, block_map: BlockMap, block_ids: list[in
     d_depth = (a * (ev.z[ray, sample] - ev.depth[ray]))[:, None] * A
     d_colour = (a[:, None] * (ev.sample_rgb[ray, sample] - ev.colour[ray])).T[..., None] * A \
         + ev.weights[ray, sample][None, :, None] * jac[1:]  # (3, A, 6)
+    # the Jacobians of what the terms' residuals are affine functions of (rows: rays, or active samples)
     jacobians = {
-        "colour": A.new_zeros(r_count, 3, 6).index_add_(0, ray, d_colour.permute(1, 0, 2)),
-        "depth": A.new_zeros(r_count, 6).index_add_(0, ray, d_depth),
-        "sdf": truncation_m * A,  # rows of the active samples: elsewhere the Jacobian is taken as 0
-        "free_space": A,
+        "rgb": A.new_zeros(r_count, 3, 6).index_add_(0, ray, d_colour.permute(1, 0, 2)),
+        "depth": A.new_zeros(r_count, 1, 6).index_add_(0, ray, d_depth[:, None]),
+        "sdf": A[:, None],  # rows of the active samples: elsewhere the Jacobian is taken as 0
     }
     H = A.new_zeros(6, 6)
     g = A.new_zeros(6)
-    for term, (r, wt) in ev.residuals.items():
-        if term in SAMPLE_TERMS:
+    for name, term in ev.terms.items():
+        if term.source is None:
+            continue  # independent of the pose
+        if term.source not in jacobians:
+            raise ValueError(f"objective term {name!r}: no Jacobian for source {term.source!r}")
+        r, wt = term.r, term.entry_weights()
+        if term.source == "sdf":
             r, wt = r[ray, sample], wt[ray, sample]
-        J = jacobians[term].reshape(-1, 6)
+        J = (term.slope * jacobians[term.source]).reshape(-1, 6)
         Jw = J * wt.reshape(-1, 1)
         H += Jw.T @ J
         g += Jw.T @ r.reshape(-1)

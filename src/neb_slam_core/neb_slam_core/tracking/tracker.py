@@ -105,13 +105,12 @@ class Tracker:
         objective is a deterministic function of the pose and each step is accepted only if it lowers
         it). A rejected step costs one evaluation; an accepted one also its Jacobian."""
         c = self.cfg
-        tr = self.render_cfg.truncation_m
         z = sample_depths(px.depth_m, self.render_cfg.sampling, stratified=True, generator=self.generator)
         T = T_init
         ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids)
         if ev.n_valid_rays < c.min_valid_rays:
             return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, 0)
-        H, g = normal_equations(ev, block_map, ids, tr, self.gradients)
+        H, g = normal_equations(ev, block_map, ids, self.gradients)
         damping = c.gn_damping
         steps = 0
         for steps in range(1, c.iterations + 1):
@@ -131,5 +130,5 @@ class Tracker:
             if np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) < c.gn_stop_step_m:
                 break
             if accepted and steps < c.iterations:
-                H, g = normal_equations(ev, block_map, ids, tr, self.gradients)
+                H, g = normal_equations(ev, block_map, ids, self.gradients)
         return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, steps)

@@ -3,18 +3,16 @@
 Ctrl-C (SIGINT), SIGTERM (what ``ros2 launch`` and systemd send) and a shutdown requested from elsewhere
 all end the process with status 0 and no traceback, whenever they arrive once ``run_nodes`` runs (and,
 for the executables, which start through :mod:`neb_slam_ros._launch`, while their modules import). A node
-with a ``close()`` method gets it called once spinning ends (it writes its output there, and may
-publish a last message: the context is still up after a signal or :func:`request_stop`; if something
-else shut it down, our nodes' publishers drop the message instead of raising). A bad parameter ends the process
-with status 2 and one line naming the parameter.
+with a ``close()`` method (:class:`neb_slam_ros.node.NebNode`) gets it called once spinning ends (it writes
+its output there, and may publish a last message: the context is still up after a signal or
+:func:`request_stop`; if something else shut it down, our nodes' publishers drop the message instead of
+raising). A bad parameter ends the process with status 2 and one line naming the parameter.
 
 Order of the shutdown: a signal only asks the spin loop to stop (our handler, not rclpy's, which would
 shut the ROS context down at once); then the executor stops, every node's ``close()`` runs, the nodes
-are destroyed while the context is still up, and the context is shut down last. With rclpy's handler
-the nodes were destroyed after the context, and in about 3 of 60 runs of the loop closer's test the
-process then died with SIGSEGV inside rcl's node teardown (``Node.destroy_node``), after all its
-output was written. A second Ctrl-C while the nodes close interrupts ``close()``; a second SIGTERM
-ends the process at once.
+are destroyed while the context is still up, and the context is shut down last: destroying a node
+after its context can crash inside rcl's node teardown. A second Ctrl-C while the nodes close
+interrupts ``close()``; a second SIGTERM ends the process at once.
 """
 
 from __future__ import annotations
@@ -22,7 +20,6 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-import time
 from collections.abc import Callable, Sequence
 
 import rclpy
@@ -32,60 +29,8 @@ from rclpy.signals import SignalHandlerOptions
 
 from neb_slam_ros.params import ParameterError
 
-try:  # the exception rcl raises when used with a context that a signal has already shut down
-    from rclpy._rclpy_pybind11 import RCLError
-except ImportError:  # pragma: no cover - layout of other rclpy builds
-    RCLError = RuntimeError
-
-
-class _PublisherWhileUp:
-    """A publisher that drops its messages once the node's context is shut down. Something else may shut
-    the context down (``rclpy.shutdown`` elsewhere in the process) while a worker thread is still busy (a
-    mapping step, a loop re-optimisation) or ``close()`` publishes the final mesh; what it publishes then
-    has no receiver, and rclpy would raise."""
-
-    def __init__(self, publisher, context):
-        self._publisher = publisher
-        self._context = context
-
-    def publish(self, msg) -> None:
-        try:
-            self._publisher.publish(msg)
-        except RCLError:
-            if self._context.ok():
-                raise
-
-    def wait_for_all_acked(self, timeout) -> bool:
-        """rclpy's, or False at once when the context is shut down (nothing can be acknowledged then)."""
-        try:
-            return self._context.ok() and self._publisher.wait_for_all_acked(timeout)
-        except RCLError:
-            if self._context.ok():
-                raise
-            return False
-
-    def __getattr__(self, name):
-        return getattr(self._publisher, name)
-
-
-class WorkerNode(Node):
-    """The base of our nodes, whose work runs in threads beside the executor's (a worker, the replay):
-    their publishers go quiet (rather than raise) once the context is shut down, so that work goes on to
-    a clean stop, and ``close()`` then finishes it and writes the outputs."""
-
-    def create_publisher(self, *args, **kwargs):
-        return _PublisherWhileUp(super().create_publisher(*args, **kwargs), self.context)
-
-
 #: longest time a node's main thread stays in rcl's wait before Python sees a pending signal
 SPIN_SLICE_S = 0.5
-
-
-def final_log(node: Node, text: str, level: str = "INFO") -> None:
-    """A log line from ``close()``: the ROS context may be shut down by then (from outside the process), and
-    rclpy's logger, which also publishes to /rosout, would complain; this writes the same format to
-    stderr only."""
-    print(f"[{level}] [{time.time():.9f}] [{node.get_logger().name}]: {text}", file=sys.stderr, flush=True)
 
 
 def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -> int:

@@ -18,7 +18,6 @@ Example::
 from __future__ import annotations
 
 import sys
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -29,9 +28,10 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from neb_slam_core.datasets.bag import BagDataset
 from neb_slam_core.errors import DatasetError
-from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import WorkerNode, request_stop, run_node
-from neb_slam_ros.params import ParameterError, declare_options, require
+from neb_slam_ros import conversions, qos
+from neb_slam_ros._node_main import request_stop, run_node
+from neb_slam_ros.node import NebNode
+from neb_slam_ros.params import ParameterError, require
 
 
 @dataclass(frozen=True)
@@ -73,12 +73,11 @@ class ReplayOptions:
         require(self.depth_scale > 0, "depth_scale", "> 0", self.depth_scale)
 
 
-class BagReplayNode(WorkerNode):
+class BagReplayNode(NebNode):
     """Publishes a bag's frames; see the module docstring."""
 
     def __init__(self) -> None:
-        super().__init__("bag_replay", namespace=NAMESPACE)
-        self.opt = declare_options(self, ReplayOptions)
+        super().__init__("bag_replay", ReplayOptions, with_config=False, join_timeout_s=10.0)
         try:
             self.dataset = BagDataset(self.opt.bag, depth_scale=self.opt.depth_scale)
         except DatasetError as exc:
@@ -92,56 +91,54 @@ class BagReplayNode(WorkerNode):
         self.pub_info = self.create_publisher(CameraInfo, "rgb/camera_info", reliable)
         self.pub_gt = self.create_publisher(PoseStamped, "ground_truth/pose", qos.events())
         self.pub_clock = self.create_publisher(Clock, "/clock", 10)
-        self._posed = threading.Condition()
         self._last_pose_ns = -1
         self.n_published = 0
         if self.opt.lockstep:
             self.create_subscription(PoseStamped, "pose", self._on_pose, qos.stream())
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._play, name="bag-replay", daemon=True)
-        self._thread.start()
+        self.start_worker()
         self.get_logger().info(f"neb_slam bag_replay started: {self.opt.bag}, frames {self.indices.start}.."
                                f"{self.indices.stop - 1} of {n}, rate {self.opt.rate:g}, lockstep {self.opt.lockstep}")
 
     def _on_pose(self, msg: PoseStamped) -> None:
-        with self._posed:
+        with self.cond:
             self._last_pose_ns = max(self._last_pose_ns, conversions.stamp_ns(msg))
-            self._posed.notify_all()
+            self.cond.notify_all()
 
     def _wait_for_pose(self, stamp_ns: int) -> None:
         deadline = time.monotonic() + self.opt.lockstep_timeout_s
-        with self._posed:
-            while self._last_pose_ns < stamp_ns and not self._stop.is_set():
+        with self.cond:
+            while self._last_pose_ns < stamp_ns and not self.stopping:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     self.get_logger().warning(f"lockstep: no pose for frame {stamp_ns} within "
                                               f"{self.opt.lockstep_timeout_s:g} s (skipped by the tracker?): going on")
                     return
-                self._posed.wait(min(left, 0.5))
+                self.cond.wait(min(left, 0.5))
 
     def _wait_for_subscribers(self) -> None:
         """Frames published before the tracker subscribed would be lost: wait for it (discovery takes a
         moment), up to ``wait_for_subscribers_s``."""
         deadline = time.monotonic() + self.opt.wait_for_subscribers_s
         pubs = (self.pub_rgb, self.pub_depth, self.pub_info)
-        while not self._stop.is_set() and time.monotonic() < deadline:
+        while not self.stopping and time.monotonic() < deadline:
             if all(p.get_subscription_count() > 0 for p in pubs) and \
                     (not self.opt.lockstep or self.count_publishers(self.resolve_topic_name("pose")) > 0):
                 return
-            self._stop.wait(0.1)
-        if not self._stop.is_set():
+            self.wait_stopping(0.1)
+        if not self.stopping:
             self.get_logger().warning(f"no tracker subscribed after {self.opt.wait_for_subscribers_s:g} s: "
                                       "publishing anyway")
 
-    def _play(self) -> None:
+    def work_loop(self) -> None:
+        """The replay (the worker thread): the bag's frames at ``rate``, then the process ends."""
         try:
             self._wait_for_subscribers()
             self.get_logger().info(f"publishing frames ({len(self.indices)})")
-            while not self._stop.is_set():
+            while not self.stopping:
                 self._play_once()
                 if not self.opt.loop:
                     break
-            if not self._stop.is_set():
+            if not self.stopping:
                 self.get_logger().info(f"neb_slam bag_replay finished: {self.n_published} frames published")
                 request_stop()  # ends the process's spin: the replay is over
         except Exception as exc:  # report, and end the process rather than hang
@@ -152,7 +149,7 @@ class BagReplayNode(WorkerNode):
         t0, stamp0 = time.monotonic(), None
         camera, world = self.opt.camera_frame_id, self.opt.world_frame_id
         for i in self.indices:
-            if self._stop.is_set():
+            if self.stopping:
                 return
             frame = self.dataset[i]
             ns = frame.stamp_ns
@@ -160,7 +157,7 @@ class BagReplayNode(WorkerNode):
             if self.opt.rate > 0:
                 delay = t0 + (ns - stamp0) * 1e-9 / self.opt.rate - time.monotonic()
                 if delay > 0:
-                    self._stop.wait(delay)
+                    self.wait_stopping(delay)
             self.pub_clock.publish(Clock(clock=conversions.to_time(ns)))
             if frame.T_world_cam is not None:
                 self.pub_gt.publish(conversions.pose_msg(frame.T_world_cam, ns, world))
@@ -171,11 +168,7 @@ class BagReplayNode(WorkerNode):
             if self.opt.lockstep:
                 self._wait_for_pose(ns)
 
-    def close(self) -> None:
-        self._stop.set()
-        with self._posed:
-            self._posed.notify_all()
-        self._thread.join(timeout=10)
+    def finish(self) -> None:
         self.dataset.close()
 
 

@@ -21,7 +21,6 @@ Example::
 from __future__ import annotations
 
 import sys
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -30,10 +29,11 @@ from nav_msgs.msg import Path
 from std_msgs.msg import UInt8MultiArray
 
 from neb_slam_core.loop.closer import LoopCloser
-from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import WorkerNode, final_log, run_node
+from neb_slam_ros import conversions, qos
+from neb_slam_ros._node_main import run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
-from neb_slam_ros.params import declare_config, declare_options, require
+from neb_slam_ros.node import NebNode
+from neb_slam_ros.params import require
 
 
 @dataclass(frozen=True)
@@ -48,17 +48,13 @@ class LoopCloserOptions:
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
 
 
-class LoopCloserNode(WorkerNode):
+class LoopCloserNode(NebNode):
     """Detects loops among the keyframes and publishes their corrections; see the module docstring."""
 
     def __init__(self) -> None:
-        super().__init__("loop_closer", namespace=NAMESPACE)
-        self.cfg = declare_config(self)
-        self.opt = declare_options(self, LoopCloserOptions)
+        super().__init__("loop_closer", LoopCloserOptions, join_timeout_s=60.0)
         # loop.enabled false: the node runs (a launch file need not change) but checks nothing
         self.closer = LoopCloser(self.cfg.loop, seed=self.cfg.seed + 4) if self.cfg.loop.enabled else None
-        self._cond = threading.Condition()
-        self._stop = False
         self._poses: list[np.ndarray] = []         # keyframe id -> current pose
         self._stamps: list[int] = []               # keyframe id -> stamp
         self._mapper_poses: np.ndarray | None = None  # the newest map update's keyframe poses
@@ -67,11 +63,10 @@ class LoopCloserNode(WorkerNode):
         self.n_loops = 0
         self.n_detected = 0
 
-        self._keyframes = KeyframeSubscriber(self, self._cond)
+        self._keyframes = KeyframeSubscriber(self, self.cond)
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
         self.pub_loop = self.create_publisher(Path, "loop_closure", qos.events(10))
-        self._worker = threading.Thread(target=self._work, name="loop-closer-worker", daemon=True)
-        self._worker.start()
+        self.start_worker()
         what = (f"vocabulary {self.closer.detector.vocabulary.n_words} words" if self.closer is not None
                 else "loop.enabled is false: no loop will be checked")
         self.get_logger().info(f"neb_slam loop_closer started (config {self.get_parameter('config').value}, {what})")
@@ -82,7 +77,7 @@ class LoopCloserNode(WorkerNode):
         update = conversions.map_update_from_msg(msg, self)
         if update is None:
             return
-        with self._cond:
+        with self.cond:
             # an update the mapper sent before it applied our newest correction holds the poses from
             # before it: taking them would undo the correction (and find the same loop again)
             if (update.version > self._map_version and len(update.keyframe_poses)
@@ -92,18 +87,19 @@ class LoopCloserNode(WorkerNode):
 
     # ------------------------------------------------------------------ worker thread
 
-    def _work(self) -> None:
-        while True:
-            with self._cond:
-                self._cond.wait_for(lambda: self._stop or self._keyframes.assembler.has_ready, timeout=1.0)
-                if self._stop:
-                    return
-                ready = self._keyframes.assembler.pop_ready()
-                refined, self._mapper_poses = self._mapper_poses, None
-            if refined is not None:
-                for k, T in enumerate(refined[:len(self._poses)]):
-                    self._poses[k] = T
-            self._check_all(ready)
+    def has_work(self) -> bool:
+        return self._keyframes.assembler.has_ready
+
+    def take_work(self) -> tuple[list[dict], np.ndarray | None]:
+        refined, self._mapper_poses = self._mapper_poses, None
+        return self._keyframes.assembler.pop_ready(), refined
+
+    def do_work(self, work: tuple[list[dict], np.ndarray | None]) -> None:
+        ready, refined = work
+        if refined is not None:
+            for k, T in enumerate(refined[:len(self._poses)]):
+                self._poses[k] = T
+        self._check_all(ready)
 
     def _check_all(self, ready: list[dict]) -> None:
         for parts in ready:
@@ -145,7 +141,7 @@ class LoopCloserNode(WorkerNode):
         self.n_loops += 1
         first = event.start_id + 1
         self._poses[first:] = list(corrected[first:])
-        with self._cond:
+        with self.cond:
             self._sent_loop_stamp = int(meta.stamp_ns)
             self._mapper_poses = None  # received before the correction: stale already
         self.get_logger().info(f"loop {frames}: score {event.score:.3f}, correction {event.correction_cm:.1f} cm / "
@@ -155,13 +151,9 @@ class LoopCloserNode(WorkerNode):
 
     # ------------------------------------------------------------------ shutdown
 
-    def close(self) -> None:
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        self._worker.join(timeout=60)
-        final_log(self, f"neb_slam loop_closer stopped: {len(self._poses)} keyframes, {self.n_detected} loops "
-                        f"detected, {self.n_loops} applied")
+    def finish(self) -> None:
+        self.final_log(f"neb_slam loop_closer stopped: {len(self._poses)} keyframes, {self.n_detected} loops "
+                       f"detected, {self.n_loops} applied")
 
 
 def main(args: Sequence[str] | None = None) -> int:

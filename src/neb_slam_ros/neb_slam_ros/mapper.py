@@ -25,7 +25,6 @@ Example::
 from __future__ import annotations
 
 import sys
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -34,22 +33,20 @@ from pathlib import Path
 import numpy as np
 import torch
 from nav_msgs.msg import Path as PathMsg
-from rclpy.duration import Duration
 from std_msgs.msg import UInt8MultiArray
-from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
 
-from neb_slam_core.loop.correction import merge_correction
 from neb_slam_core.io.run_dir import MAP_FILE, TRAJECTORY_FILE, RunDirectory
 from neb_slam_core.io.trajectory import Trajectory
+from neb_slam_core.loop.correction import merge_correction
 from neb_slam_core.scene import map_update
 from neb_slam_core.scene.persistence import save_map
 from neb_slam_core.slam import Backend, corrected_trajectory, new_block_map
-from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import WorkerNode, final_log, run_node
+from neb_slam_ros import conversions, qos
+from neb_slam_ros._node_main import run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
-from neb_slam_ros.requests import Requests
-from neb_slam_ros.params import declare_config, declare_options, map_parameter, require
+from neb_slam_ros.node import NebNode
+from neb_slam_ros.outputs import FINAL_MESH_ACK_S, MapOutputs
+from neb_slam_ros.params import map_parameter, require
 
 
 @dataclass(frozen=True)
@@ -73,50 +70,17 @@ class MapperOptions:
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
 
 
-def split_by_block(mesh, block_map) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """A mesh's triangles grouped by the block that holds their centroid (the lowest id where blocks
-    overlap): block id -> (vertices, faces, vertex colours), the vertex arrays shared."""
-    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    if len(faces) == 0:
-        return {}
-    colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
-    centroids = torch.as_tensor(verts[faces].mean(axis=1), dtype=torch.float32, device=block_map.device)
-    inside = block_map.contains(centroids).cpu()
-    owner = torch.where(inside.any(dim=1), inside.float().argmax(dim=1), -1).numpy()
-    return {int(b): (verts, faces[owner == b], colours) for b in np.unique(owner) if b >= 0}
-
-
-#: at shutdown, how long a published mesh may wait for every subscriber's acknowledgement (the process
-#: ends right after; a reliable message not yet received would be lost with it)
-FINAL_MESH_ACK_S = 5.0
-
-
-def publish_mesh(publisher, mesh, block_map, frame_id: str, ack_timeout_s: float = 0.0) -> str:
-    """Publish ``mesh`` on ``publisher`` (the ``mesh`` topic) as one marker per block; with
-    ``ack_timeout_s``, then wait up to that long until every matched subscriber has acknowledged it.
-    Returns what was published, for the log."""
-    publisher.publish(conversions.mesh_markers(split_by_block(mesh, block_map), time.time_ns(), frame_id))
-    if ack_timeout_s > 0:
-        publisher.wait_for_all_acked(Duration(seconds=ack_timeout_s))
-    return f"{len(mesh.faces)} faces"
-
-
-class MapperNode(WorkerNode):
+class MapperNode(NebNode):
     """Integrates keyframes and optimises the map; see the module docstring."""
 
     def __init__(self) -> None:
-        super().__init__("mapper", namespace=NAMESPACE)
-        self.cfg = declare_config(self)
-        self.opt = declare_options(self, MapperOptions)
+        super().__init__("mapper", MapperOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/mapper-%Y%m%d-%H%M%S"))
         torch.manual_seed(self.cfg.seed)
         loaded = map_parameter(self.cfg, self.opt.map_file)
         self.block_map = new_block_map(self.cfg) if loaded is None else loaded
         self.backend = Backend(self.cfg, self.block_map)
         self._rng = np.random.default_rng(self.cfg.seed)
-        self._cond = threading.Condition()
-        self._requests = Requests(self._cond)
-        self._stop = False
         self._version = 0
         self._unsent_blocks: set[int] = set()
         self._path: tuple[np.ndarray, np.ndarray] | None = None
@@ -126,21 +90,20 @@ class MapperNode(WorkerNode):
         self._n_mapping_steps = 0
         self._map_ms = 0.0
 
-        self._keyframes = KeyframeSubscriber(self, self._cond)
+        self._keyframes = KeyframeSubscriber(self, self.cond)
         self._assembler = self._keyframes.assembler
         self.create_subscription(PathMsg, "path", self._on_path, qos.state())
         self.create_subscription(PathMsg, "loop_closure", self._on_loop, qos.events(10))
         self.pub_update = self.create_publisher(UInt8MultiArray, "map_update", qos.events(10))
-        self.pub_mesh = self.create_publisher(MarkerArray, "mesh", qos.state())
-        self.create_service(Trigger, "save_mesh", lambda req, res: self._requests.serve("save_mesh", res))
-        self.create_service(Trigger, "save_map", lambda req, res: self._requests.serve("save_map", res))
-        if self.opt.mesh_period_s > 0:
-            self.create_timer(self.opt.mesh_period_s, lambda: self._requests.submit("publish_mesh"))
+        self.map_outputs = MapOutputs(
+            self, self.opt.frame_id, self.cfg.mesh, self.out, self.opt.mesh_period_s,
+            block_map=lambda: self.block_map if len(self.backend.keyframes) else None,
+            observed_points=lambda: self.backend.observed_points(self._rng),
+            write_map=self._write_map)
         self._n_update_subscribers = 0
         if self.opt.map_file:
             self._base_timer = self.create_timer(0.5, self._offer_loaded_map)
-        self._worker = threading.Thread(target=self._work, name="mapper-worker", daemon=True)
-        self._worker.start()
+        self.start_worker()
         start = f", continuing {self.opt.map_file} ({len(self.block_map)} blocks)" if self.opt.map_file else ""
         self.get_logger().info(f"neb_slam mapper started (config {self.get_parameter('config').value}, "
                                f"output {self.out}{start})")
@@ -152,13 +115,13 @@ class MapperNode(WorkerNode):
         volatile topic gives a late subscriber nothing that was sent before it came)."""
         n = self.pub_update.get_subscription_count()
         if n > self._n_update_subscribers:
-            self._requests.submit("publish_loaded_map")
+            self.submit(self._publish_loaded_map, "publish_loaded_map")
         self._n_update_subscribers = n
 
     def _on_path(self, msg: PathMsg) -> None:
         stamps = np.array([conversions.stamp_ns(p) for p in msg.poses], dtype=np.int64)
         poses = np.stack([conversions.pose_from_msg(p, "path") for p in msg.poses]) if msg.poses else np.zeros((0, 4, 4))
-        with self._cond:
+        with self.cond:
             self._path = (stamps, poses)
 
     def _on_loop(self, msg: PathMsg) -> None:
@@ -170,33 +133,30 @@ class MapperNode(WorkerNode):
         except (ValueError, conversions.InputError) as exc:
             self.get_logger().error(f"{self.resolve_topic_name('loop_closure')}: {exc}: correction ignored")
             return
-        with self._cond:
+        with self.cond:
             self._loops.append((conversions.stamp_ns(msg), stamps, poses))
-            self._cond.notify_all()
+            self.cond.notify_all()
 
     # ------------------------------------------------------------------ worker thread
 
-    def _work(self) -> None:
-        while True:
-            with self._cond:
-                self._cond.wait_for(lambda: self._stop or self._requests or self._assembler.has_ready or self._loops,
-                                    timeout=1.0)
-                if self._stop:
-                    return
-                ready = self._assembler.pop_ready()
-                loops, self._loops = self._loops, []
-                # requests are served after the keyframes that arrived before them
-                requests = self._requests.take()
-            for parts in ready:
-                try:
-                    self._integrate(parts)
-                except Exception as exc:  # never let one keyframe kill the mapper
-                    self.get_logger().error(f"keyframe {parts['meta'].keyframe_id} failed: {type(exc).__name__}: {exc}")
-            waiting = [loop for loop in loops if not self._correct(*loop)]
-            if waiting:
-                with self._cond:  # their keyframes have not all arrived: after the next keyframes
-                    self._loops[:0] = waiting
-            Requests.run(requests, self, self._stop)
+    def has_work(self) -> bool:
+        return self._assembler.has_ready or bool(self._loops)
+
+    def take_work(self) -> tuple[list[dict], list]:
+        loops, self._loops = self._loops, []
+        return self._assembler.pop_ready(), loops
+
+    def do_work(self, work: tuple[list[dict], list]) -> None:
+        ready, loops = work
+        for parts in ready:
+            try:
+                self._integrate(parts)
+            except Exception as exc:  # never let one keyframe kill the mapper
+                self.get_logger().error(f"keyframe {parts['meta'].keyframe_id} failed: {type(exc).__name__}: {exc}")
+        waiting = [loop for loop in loops if not self._correct(*loop)]
+        if waiting:
+            with self.cond:  # their keyframes have not all arrived: after the next keyframes
+                self._loops[:0] = waiting
 
     def _integrate(self, parts: dict) -> None:
         meta: KeyframeMeta = parts["meta"]
@@ -241,7 +201,7 @@ class MapperNode(WorkerNode):
         self._unsent_blocks.clear()
         return True
 
-    def _do_publish_loaded_map(self) -> str:
+    def _publish_loaded_map(self) -> str:
         if len(self.backend.keyframes):
             self._base_timer.cancel()  # the map is moving on: trackers get it from the updates now
             return "not sent: keyframes have arrived"
@@ -259,41 +219,18 @@ class MapperNode(WorkerNode):
 
     # ------------------------------------------------------------------ outputs (worker thread)
 
-    def _mesh(self):
-        from neb_slam_core.mesh import extract_mesh
-
-        if len(self.block_map) == 0:
-            raise RuntimeError("the map has no blocks yet")
-        return extract_mesh(self.block_map, self.cfg.mesh, self.backend.observed_points(self._rng))
-
-    def _do_publish_mesh(self) -> str:
-        if len(self.backend.keyframes) == 0:
-            return "no keyframe yet"
-        return publish_mesh(self.pub_mesh, self._mesh(), self.block_map, self.opt.frame_id)
-
-    def _run_dir(self) -> RunDirectory:
-        self.out.mkdir(parents=True, exist_ok=True)
-        return RunDirectory(self.out)
-
-    def _do_save_mesh(self, ack_timeout_s: float = 0.0) -> str:
-        """Write ``mesh.ply`` and publish the same mesh."""
-        mesh = self._mesh()
-        path = self._run_dir().write_mesh(mesh)
-        publish_mesh(self.pub_mesh, mesh, self.block_map, self.opt.frame_id, ack_timeout_s)
-        return str(path)
-
-    def _do_save_map(self) -> str:
+    def _write_map(self, run_dir: RunDirectory) -> Path:
         kfs = self.backend.keyframes
         extra = {"keyframe_poses": torch.from_numpy(kfs.poses() if len(kfs) else np.zeros((0, 4, 4))),
                  "keyframe_stamps_ns": [int(kf.stamp_ns) for kf in kfs.keyframes],
                  "keyframe_frame_indices": [int(kf.frame_index) for kf in kfs.keyframes]}
-        return str(save_map(self.block_map, self._run_dir().file(MAP_FILE), extra=extra))
+        return save_map(self.block_map, run_dir.file(MAP_FILE), extra=extra)
 
     def trajectory(self) -> Trajectory:
         kfs = self.backend.keyframes
         kf_stamps = np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64)
         kf_poses = kfs.poses() if len(kfs) else np.zeros((0, 4, 4))
-        with self._cond:
+        with self.cond:
             path = self._path
         if path is None:
             return Trajectory(kf_stamps, kf_poses)
@@ -301,33 +238,29 @@ class MapperNode(WorkerNode):
 
     # ------------------------------------------------------------------ shutdown
 
-    def close(self) -> None:
+    def finish(self) -> None:
         """Finish the keyframes already received, then write map, mesh, trajectory and config."""
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        self._worker.join(timeout=600)
         while self._assembler.has_ready:  # keyframes and loop corrections that arrived before the stop
             self._integrate(self._assembler.pop_ready()[0])
         for loop in self._loops:
             self._correct(*loop)
         if len(self.backend.keyframes) == 0:
-            final_log(self, "neb_slam mapper stopped before any keyframe: nothing to write", "WARN")
+            self.final_log("neb_slam mapper stopped before any keyframe: nothing to write", "WARN")
             return
-        run_dir = self._run_dir()
+        run_dir = self.map_outputs.run_dir()
         run_dir.write_config(self.cfg)
-        written = [self._do_save_map()]
+        written = [str(self._write_map(run_dir))]
         traj = self.trajectory()
         written.append(str(run_dir.write_trajectory(traj, TRAJECTORY_FILE,
                                                     f"neb_slam mapper: {len(traj)} frames, T_world_cam")))
         try:
-            written.append(self._do_save_mesh(ack_timeout_s=FINAL_MESH_ACK_S))
+            written.append(self.map_outputs.save_mesh(ack_timeout_s=FINAL_MESH_ACK_S))
         except Exception as exc:
-            final_log(self, f"mesh not written: {type(exc).__name__}: {exc}", "WARN")
-        final_log(self, f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} blocks, "
-                 f"{self._n_mapping_steps} mapping steps ({self._map_ms / max(self._n_mapping_steps, 1):.0f} ms each), "
-                 f"{self._n_loops} loop corrections; "
-                 f"wrote {', '.join(Path(w).name for w in written)} to {self.out}")
+            self.final_log(f"mesh not written: {type(exc).__name__}: {exc}", "WARN")
+        self.final_log(f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} "
+                       f"blocks, {self._n_mapping_steps} mapping steps "
+                       f"({self._map_ms / max(self._n_mapping_steps, 1):.0f} ms each), {self._n_loops} loop "
+                       f"corrections; wrote {', '.join(Path(w).name for w in written)} to {self.out}")
 
 
 def main(args: Sequence[str] | None = None) -> int:

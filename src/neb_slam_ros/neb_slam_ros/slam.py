@@ -20,27 +20,21 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Odometry, Path as PathMsg
 from rclpy.node import Node
-from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
 
 from neb_slam_core.io.run_dir import RunDirectory, RunLog, RunOutputOptions, write_run
 from neb_slam_core.slam import Slam
-from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import WorkerNode, final_log, run_nodes
+from neb_slam_core.types import RgbdFrame
+from neb_slam_ros._node_main import run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
-from neb_slam_ros.mapper import FINAL_MESH_ACK_S, publish_mesh
-from neb_slam_ros.requests import Requests
-from neb_slam_ros.params import declare_config, declare_options, map_parameter, require
+from neb_slam_ros.node import NebNode
+from neb_slam_ros.outputs import FINAL_MESH_ACK_S, MapOutputs, PoseOutputs, block_centres
+from neb_slam_ros.params import declare_options, map_parameter, require
 
 
 @dataclass(frozen=True)
@@ -69,62 +63,51 @@ class SlamOptions:
         require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
 
 
-class SlamNode(WorkerNode):
+class SlamNode(NebNode):
     """Tracking and mapping in one engine; see the module docstring."""
 
     def __init__(self) -> None:
-        super().__init__("slam", namespace=NAMESPACE)
-        self.cfg = declare_config(self)
-        self.opt = declare_options(self, SlamOptions)
+        super().__init__("slam", SlamOptions)
         self.input_opt = declare_options(self, InputOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/slam-%Y%m%d-%H%M%S"))
         self._map = map_parameter(self.cfg, self.opt.map_file)  # checked at start, used at the first frame
         self.slam: Slam | None = None  # made at the first frame (its pose may come from a topic)
         self.run_log = RunLog()
-        self._cond = threading.Condition()
-        self._requests = Requests(self._cond)
-        self._stop = False
         self._t_first: float | None = None
-        self._prev: tuple[np.ndarray, int] | None = None
-        self.input = CameraInput(self, self.input_opt, self._cond)
-        self.pub_pose = self.create_publisher(PoseStamped, "pose", qos.stream())
-        self.pub_odom = self.create_publisher(Odometry, "odometry", qos.stream())
-        self.pub_path = self.create_publisher(PathMsg, "path", qos.state())
-        self.pub_blocks = self.create_publisher(MarkerArray, "blocks", qos.state())
-        self.pub_mesh = self.create_publisher(MarkerArray, "mesh", qos.state())
-        self.create_service(Trigger, "save_mesh", lambda req, res: self._requests.serve("save_mesh", res))
-        self.create_service(Trigger, "save_map", lambda req, res: self._requests.serve("save_map", res))
-        if self.opt.mesh_period_s > 0:
-            self.create_timer(self.opt.mesh_period_s, lambda: self._requests.submit("publish_mesh"))
-        self._worker = threading.Thread(target=self._work, name="slam-worker", daemon=True)
-        self._worker.start()
+        self.input = CameraInput(self, self.input_opt, self.cond)
+        self.poses = PoseOutputs(self, self.opt.frame_id, self.cfg.block.edge_m)
+        self.map_outputs = MapOutputs(
+            self, self.opt.frame_id, self.cfg.mesh, self.out, self.opt.mesh_period_s,
+            block_map=lambda: None if self.slam is None else self.slam.block_map,
+            observed_points=lambda: self.slam.observed_points(),
+            write_map=lambda run_dir: run_dir.write_map(self.slam, self.run_log.frames))
+        self.start_worker()
         start = f", continuing {self.opt.map_file} ({len(self._map)} blocks)" if self._map is not None else ""
         self.get_logger().info(f"neb_slam slam started (config {self.get_parameter('config').value}, "
                                f"output {self.out}{start})")
 
     # ------------------------------------------------------------------ worker thread
 
-    def _work(self) -> None:
-        while True:
-            with self._cond:
-                self._cond.wait_for(lambda: self._stop or self._requests or self.input.has_frame, timeout=1.0)
-                if self._stop:
-                    return
-                frame = self.input.pop()
-                requests = self._requests.take()
-            if frame is not None:
-                try:
-                    self._process(frame)
-                except Exception as exc:  # a frame must never kill the node
-                    self.get_logger().error(f"frame {frame.stamp_ns} failed in the engine "
-                                            f"({type(exc).__name__}: {exc}); skipped")
-            Requests.run(requests, self, self._stop)
+    def has_work(self) -> bool:
+        return self.input.has_frame
 
-    def _process(self, frame) -> None:
+    def take_work(self) -> RgbdFrame | None:
+        return self.input.pop()
+
+    def do_work(self, frame: RgbdFrame | None) -> None:
+        if frame is None:
+            return
+        try:
+            self._process(frame)
+        except Exception as exc:  # a frame must never kill the node
+            self.get_logger().error(f"frame {frame.stamp_ns} failed in the engine ({type(exc).__name__}: {exc}); "
+                                    "skipped")
+
+    def _process(self, frame: RgbdFrame) -> None:
         gt = None
         if self.input_opt.ground_truth_topic:
             gt = self.input.wait_for_ground_truth(frame.stamp_ns, self.opt.initial_pose_timeout_s if self.slam is None
-                                                  else 0.5, lambda: self._stop)
+                                                  else 0.5, lambda: self.stopping)
             frame = dataclasses.replace(frame, T_world_cam=gt)
         if self.slam is None:
             if self.input_opt.ground_truth_topic and gt is None:
@@ -136,63 +119,22 @@ class SlamNode(WorkerNode):
         self.run_log.begin(frame)
         r = self.slam.process(frame)
         self.run_log.end(r)
-        fid = self.opt.frame_id
-        traj = self.slam.trajectory()
-        self.pub_path.publish(conversions.path_msg(traj.stamps_ns, traj.poses, fid))
+        self.poses.publish_path(self.slam.trajectory())
         if r.new_block_id is not None:
-            centres = self.slam.block_map.centres().detach().cpu().double().numpy().reshape(-1, 3)
-            self.pub_blocks.publish(conversions.block_markers(centres, self.cfg.block.edge_m, r.stamp_ns, fid))
-        prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
-        self.pub_odom.publish(conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, fid, "camera"))
-        self._prev = (r.T_world_cam, r.stamp_ns)
-        # the pose goes last: lockstep replay publishes the next frame (or ends the process) on it
-        self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, fid))
+            self.poses.publish_blocks(block_centres(self.slam.block_map), r.stamp_ns)
+        self.poses.publish_frame(r)
         if not r.tracking_ok:
             self.get_logger().warning(f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
                                       "kept the motion prediction")
 
-    # ------------------------------------------------------------------ outputs (worker thread)
-
-    def _mesh(self):
-        from neb_slam_core.mesh import extract_mesh
-
-        if self.slam is None or len(self.slam.block_map) == 0:
-            raise RuntimeError("the map has no blocks yet")
-        return extract_mesh(self.slam.block_map, self.cfg.mesh, self.slam.observed_points())
-
-    def _do_publish_mesh(self) -> str:
-        if self.slam is None:
-            return "no frame yet"
-        return publish_mesh(self.pub_mesh, self._mesh(), self.slam.block_map, self.opt.frame_id)
-
-    def _run_dir(self) -> RunDirectory:
-        self.out.mkdir(parents=True, exist_ok=True)
-        return RunDirectory(self.out)
-
-    def _do_save_mesh(self) -> str:
-        """Write ``mesh.ply`` and publish the same mesh."""
-        mesh = self._mesh()
-        path = self._run_dir().write_mesh(mesh)
-        publish_mesh(self.pub_mesh, mesh, self.slam.block_map, self.opt.frame_id)
-        return str(path)
-
-    def _do_save_map(self) -> str:
-        if self.slam is None:
-            raise RuntimeError("no frame yet")
-        return str(self._run_dir().write_map(self.slam, self.run_log.frames))
-
     # ------------------------------------------------------------------ shutdown
 
-    def close(self) -> None:
-        """Finish the frame in progress, then write the run directory."""
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        self._worker.join(timeout=600)
+    def finish(self) -> None:
+        """Write the run directory and publish the final mesh."""
         if self.slam is None or self.slam.n_frames == 0:
-            final_log(self, "neb_slam slam stopped before any frame: nothing to write", "WARN")
+            self.final_log("neb_slam slam stopped before any frame: nothing to write", "WARN")
             return
-        run_dir = self._run_dir()
+        run_dir = self.map_outputs.run_dir()
         run_dir.write_config(self.cfg)
         run_dir.write_intrinsics(self._intrinsics)
         first_gt = self.run_log.frames[0].T_world_cam_gt is not None
@@ -200,12 +142,12 @@ class SlamNode(WorkerNode):
         wall_s = time.perf_counter() - (self._t_first or time.perf_counter())
         summary = write_run(run_dir, self.slam, self.run_log, options, "complete", wall_s)
         if summary.mesh is not None:  # the final mesh, also to the topic's subscribers
-            publish_mesh(self.pub_mesh, summary.mesh, self.slam.block_map, self.opt.frame_id, FINAL_MESH_ACK_S)
+            self.map_outputs.publish(summary.mesh, FINAL_MESH_ACK_S)
         m = summary.metrics
         ate = f", ATE {m['ate_rmse_cm']:.3f} cm" if "ate_rmse_cm" in m else ""
-        final_log(self, f"neb_slam slam stopped: {self.slam.n_frames} frames, {m.get('n_blocks')} blocks, "
-                        f"{m.get('s_per_frame') or 0:.3f} s per frame{ate}, {self.input.n_dropped} dropped, "
-                        f"{self.input.warnings.total} input warnings; run directory {self.out}")
+        self.final_log(f"neb_slam slam stopped: {self.slam.n_frames} frames, {m.get('n_blocks')} blocks, "
+                       f"{m.get('s_per_frame') or 0:.3f} s per frame{ate}, {self.input.n_dropped} dropped, "
+                       f"{self.input.warnings.total} input warnings; run directory {self.out}")
 
 
 def main(args: Sequence[str] | None = None) -> int:
@@ -224,9 +166,8 @@ def main(args: Sequence[str] | None = None) -> int:
         return BagReplayNode()
 
     # One executor thread for the callbacks; the engine runs in the node's own worker thread (and the replay
-    # in its own), so the process is multi-threaded where it matters. rclpy's MultiThreadedExecutor was
-    # measured 26 % slower here (0.34 against 0.46 frames per second, benchmarks/ros_suite.py): its
-    # threads compete with the engine for the GIL.
+    # in its own), so the process is multi-threaded where it matters. A multi-threaded executor's threads
+    # would compete with the engine for the GIL.
     return run_nodes([make_slam, make_replay], args, multi_threaded=False)
 
 

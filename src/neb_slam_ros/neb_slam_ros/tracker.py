@@ -22,7 +22,6 @@ Example::
 from __future__ import annotations
 
 import sys
-import threading
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -31,18 +30,20 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Odometry, Path
+from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String, UInt8MultiArray
-from visualization_msgs.msg import MarkerArray
 
 from neb_slam_core.scene import map_update
-from neb_slam_core.slam import Frontend, new_block_map
-from neb_slam_ros import NAMESPACE, conversions, qos
-from neb_slam_ros._node_main import WorkerNode, final_log, run_node
-from neb_slam_ros.keyframe_link import KeyframeMeta
+from neb_slam_core.slam import Frontend, FrontendStep, new_block_map
+from neb_slam_core.types import RgbdFrame
+from neb_slam_ros import conversions, qos
+from neb_slam_ros._node_main import run_node
 from neb_slam_ros.camera_input import CameraInput, InputOptions
-from neb_slam_ros.params import declare_config, declare_options, require
+from neb_slam_ros.keyframe_link import KeyframeMeta
+from neb_slam_ros.node import NebNode
+from neb_slam_ros.outputs import CAMERA_FRAME, PoseOutputs, block_centres
+from neb_slam_ros.params import declare_options, require
 
 
 @dataclass(frozen=True)
@@ -71,35 +72,28 @@ class TrackerOptions:
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
 
 
-class TrackerNode(WorkerNode):
+class TrackerNode(NebNode):
     """Tracks every frame against the latest map it has; see the module docstring."""
 
     def __init__(self) -> None:
-        super().__init__("tracker", namespace=NAMESPACE)
-        self.cfg = declare_config(self)
-        self.opt = declare_options(self, TrackerOptions)
+        super().__init__("tracker", TrackerOptions, join_timeout_s=60.0)
         self.input_opt = declare_options(self, InputOptions)
         torch.manual_seed(self.cfg.seed)
         self.block_map = new_block_map(self.cfg)
         self.frontend: Frontend | None = None  # made at the first frame (its pose may come from a topic)
-        self._cond = threading.Condition()
         self._updates: deque = deque()
-        self._stop = False
         self._awaited_ack: int | None = None  # stamp of the keyframe whose map update we wait for
         self._acked = -1
         self._awaited_loop: int | None = None  # stamp of the keyframe whose loop verdict we wait for
         self._loop_checked = -1
         self._map_version = 0
-        self._prev: tuple[np.ndarray, int] | None = None
+        self._waited_since: float | None = None
 
-        self.input = CameraInput(self, self.input_opt, self._cond)
+        self.input = CameraInput(self, self.input_opt, self.cond)
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
         if self.opt.loop_sync:
             self.create_subscription(Path, "loop_closure", self._on_loop_verdict, qos.events(10))
-        self.pub_pose = self.create_publisher(PoseStamped, "pose", qos.stream())
-        self.pub_odom = self.create_publisher(Odometry, "odometry", qos.stream())
-        self.pub_path = self.create_publisher(Path, "path", qos.state())
-        self.pub_blocks = self.create_publisher(MarkerArray, "blocks", qos.state())
+        self.poses = PoseOutputs(self, self.opt.frame_id, self.cfg.block.edge_m)
         self.pub_kf = {
             "rgb": self.create_publisher(Image, "keyframe/rgb", qos.keyframes()),
             "depth": self.create_publisher(Image, "keyframe/depth", qos.keyframes()),
@@ -107,8 +101,7 @@ class TrackerNode(WorkerNode):
             "pose": self.create_publisher(PoseStamped, "keyframe/pose", qos.keyframes()),
             "meta": self.create_publisher(String, "keyframe/meta", qos.keyframes()),
         }
-        self._worker = threading.Thread(target=self._work, name="tracker-worker", daemon=True)
-        self._worker.start()
+        self.start_worker()
         self.get_logger().info(f"neb_slam tracker started (config {self.get_parameter('config').value}, "
                                f"map_sync {self.opt.map_sync}, inputs {', '.join(self.input.topics)})")
 
@@ -118,14 +111,14 @@ class TrackerNode(WorkerNode):
         update = conversions.map_update_from_msg(msg, self)
         if update is None:
             return
-        with self._cond:
+        with self.cond:
             self._updates.append(update)
-            self._cond.notify_all()
+            self.cond.notify_all()
 
     def _on_loop_verdict(self, msg: Path) -> None:
-        with self._cond:  # the corrected poses themselves come with the mapper's next map update
+        with self.cond:  # the corrected poses themselves come with the mapper's next map update
             self._loop_checked = max(self._loop_checked, conversions.stamp_ns(msg))
-            self._cond.notify_all()
+            self.cond.notify_all()
 
     # ------------------------------------------------------------------ worker thread
 
@@ -135,43 +128,45 @@ class TrackerNode(WorkerNode):
                 or (self._awaited_ack is not None and self._acked < self._awaited_ack)
                 or (self._awaited_loop is not None and self._loop_checked < self._awaited_loop))
 
-    def _work(self) -> None:
-        waited_since = None
-        while True:
-            with self._cond:
-                self._cond.wait_for(lambda: self._stop or self._updates or (self.input.has_frame and not self._waiting_for_map()),
-                                    timeout=1.0)
-                if self._stop:
-                    return
-                updates = list(self._updates)
-                self._updates.clear()
-                frame = None if self._waiting_for_map() else self.input.pop()
-            for u in updates:
-                self._apply(u)
-            if self._waiting_for_map():
-                waited_since = waited_since or time.monotonic()
-                if time.monotonic() - waited_since > self.opt.map_timeout_s:
-                    if self._map_version == 0 and self.opt.wait_for_map:
-                        what = "no map yet (wait_for_map): is a mapper with map_file running?"
-                    else:
-                        what = (f"no map update or loop verdict for keyframe {self._awaited_ack}: are the mapper "
-                                "and (with loop_sync) the loop closer running?")
-                    self.get_logger().warning(f"{what} (waited {self.opt.map_timeout_s:.0f} s)")
-                    waited_since = time.monotonic()
+    def has_work(self) -> bool:
+        return bool(self._updates) or (self.input.has_frame and not self._waiting_for_map())
+
+    def take_work(self) -> tuple[list, RgbdFrame | None]:
+        updates = list(self._updates)
+        self._updates.clear()
+        return updates, None if self._waiting_for_map() else self.input.pop()
+
+    def do_work(self, work: tuple[list, RgbdFrame | None]) -> None:
+        updates, frame = work
+        for u in updates:
+            self._apply(u)
+        self._warn_when_waiting_long()
+        if frame is not None:
+            try:
+                self._track(frame)
+            except Exception as exc:  # a frame must never kill the node
+                self.get_logger().error(f"frame {frame.stamp_ns} failed in the engine "
+                                        f"({type(exc).__name__}: {exc}); skipped")
+
+    def _warn_when_waiting_long(self) -> None:
+        if not self._waiting_for_map():
+            self._waited_since = None
+            return
+        self._waited_since = self._waited_since or time.monotonic()
+        if time.monotonic() - self._waited_since > self.opt.map_timeout_s:
+            if self._map_version == 0 and self.opt.wait_for_map:
+                what = "no map yet (wait_for_map): is a mapper with map_file running?"
             else:
-                waited_since = None
-            if frame is not None:
-                try:
-                    self._track(frame)
-                except Exception as exc:  # a frame must never kill the node
-                    self.get_logger().error(f"frame {frame.stamp_ns} failed in the engine "
-                                            f"({type(exc).__name__}: {exc}); skipped")
+                what = (f"no map update or loop verdict for keyframe {self._awaited_ack}: are the mapper "
+                        "and (with loop_sync) the loop closer running?")
+            self.get_logger().warning(f"{what} (waited {self.opt.map_timeout_s:.0f} s)")
+            self._waited_since = time.monotonic()
 
     def _first_pose(self, stamp_ns: int) -> np.ndarray:
         topic = self.input_opt.ground_truth_topic
         if not topic:
             return np.eye(4)
-        T = self.input.wait_for_ground_truth(stamp_ns, self.opt.initial_pose_timeout_s, lambda: self._stop)
+        T = self.input.wait_for_ground_truth(stamp_ns, self.opt.initial_pose_timeout_s, lambda: self.stopping)
         if T is None:
             self.get_logger().warning(f"no pose on {topic} near the first frame's stamp after "
                                       f"{self.opt.initial_pose_timeout_s:g} s: starting from the identity")
@@ -190,61 +185,45 @@ class TrackerNode(WorkerNode):
         self._acked = max(self._acked, update.ack_stamp_ns)
         if self.frontend is not None and len(update.keyframe_poses):
             self.frontend.set_keyframe_poses(update.keyframe_poses)
-            self._publish_path()
+            self.poses.publish_path(self.frontend.trajectory())
 
-    def _track(self, frame) -> None:
+    def _track(self, frame: RgbdFrame) -> None:
         if self.frontend is None:
             self.frontend = Frontend(self.cfg, self.block_map, self._first_pose(frame.stamp_ns))
         step = self.frontend.step(frame)
         r = step.result
-        fid = self.opt.frame_id
-        self._publish_path()
+        self.poses.publish_path(self.frontend.trajectory())
         if r.new_block_id is not None:
-            self.pub_blocks.publish(conversions.block_markers(self._centres(), self.cfg.block.edge_m, r.stamp_ns, fid))
+            self.poses.publish_blocks(block_centres(self.block_map), r.stamp_ns)
         if step.keyframe_id is not None:
             self._publish_keyframe(step)
-        with self._cond:
+        with self.cond:
             if step.map_now and (self.opt.map_sync or step.first):
                 self._awaited_ack = r.stamp_ns
             if step.keyframe_id is not None and self.opt.loop_sync:
                 self._awaited_loop = r.stamp_ns
-        prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
-        self.pub_odom.publish(conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, fid, "camera"))
-        self._prev = (r.T_world_cam, r.stamp_ns)
-        # the pose goes last: lockstep replay publishes the next frame (or ends) on it
-        self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, fid))
+        self.poses.publish_frame(r)
         if not r.tracking_ok:
             self.get_logger().warning(f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
                                       "kept the motion prediction")
 
-    def _centres(self) -> np.ndarray:
-        return self.block_map.centres().detach().cpu().double().numpy().reshape(-1, 3)
-
-    def _publish_path(self) -> None:
-        traj = self.frontend.trajectory()
-        self.pub_path.publish(conversions.path_msg(traj.stamps_ns, traj.poses, self.opt.frame_id))
-
-    def _publish_keyframe(self, step) -> None:
+    def _publish_keyframe(self, step: FrontendStep) -> None:
         r, f = step.result, step.frame
-        ns, cam = r.stamp_ns, "camera"
+        ns = r.stamp_ns
         meta = KeyframeMeta(ns, r.frame_index, step.keyframe_id, step.map_now, step.first, r.T_world_cam,
-                            self._centres())
-        self.pub_kf["rgb"].publish(conversions.rgb_msg(f.rgb, ns, cam))
-        self.pub_kf["depth"].publish(conversions.depth_msg(f.depth_m, ns, cam))
-        self.pub_kf["camera_info"].publish(conversions.camera_info_msg(f.intrinsics, None, ns, cam))
+                            block_centres(self.block_map))
+        self.pub_kf["rgb"].publish(conversions.rgb_msg(f.rgb, ns, CAMERA_FRAME))
+        self.pub_kf["depth"].publish(conversions.depth_msg(f.depth_m, ns, CAMERA_FRAME))
+        self.pub_kf["camera_info"].publish(conversions.camera_info_msg(f.intrinsics, None, ns, CAMERA_FRAME))
         self.pub_kf["pose"].publish(conversions.pose_msg(r.T_world_cam, ns, self.opt.frame_id))
         self.pub_kf["meta"].publish(String(data=meta.to_json()))
 
     # ------------------------------------------------------------------ shutdown
 
-    def close(self) -> None:
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        self._worker.join(timeout=60)
+    def finish(self) -> None:
         n = 0 if self.frontend is None else self.frontend.n_frames
-        final_log(self, f"neb_slam tracker stopped: {n} frames tracked, {len(self.block_map)} blocks, "
-                               f"{self.input.n_dropped} dropped, {self.input.warnings.total} input warnings")
+        self.final_log(f"neb_slam tracker stopped: {n} frames tracked, {len(self.block_map)} blocks, "
+                       f"{self.input.n_dropped} dropped, {self.input.warnings.total} input warnings")
 
 
 def main(args: Sequence[str] | None = None) -> int:

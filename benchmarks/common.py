@@ -1,11 +1,18 @@
-"""Pieces shared by the benchmark scripts (run as scripts: this folder is on ``sys.path``)."""
+"""Pieces shared by the benchmark scripts (run as scripts: this folder is on ``sys.path``).
+
+Every script ends with :func:`record`: its figures, stamped with the commit, the date and what the
+machine was doing, go to ``benchmarks/results/<benchmark>-<YYYYmmdd-HHMMSS>.json`` (and to ``--json FILE``
+when given); ``benchmarks/report.py`` renders ``docs/benchmarks.md`` from that folder.
+"""
 
 from __future__ import annotations
 
 import json
 import os
+import subprocess
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +20,10 @@ from scipy.spatial.transform import Rotation
 
 REPO = Path(__file__).resolve().parents[1]
 TUM = Path(os.environ.get("NEB_SLAM_SHARED_DATA", REPO.parent / "shared" / "data")) / "tum_fr1_xyz_300"
+#: where every benchmark run leaves its stamped figures
+RESULTS = REPO / "benchmarks" / "results"
+#: the key of the stamp that :func:`record` adds to a benchmark's figures
+STAMP_KEY = "stamp"
 
 
 def predicted_start(T_world_cam: np.ndarray) -> np.ndarray:
@@ -40,12 +51,78 @@ def load_figures() -> dict:
     return {"threads": torch.get_num_threads(), "load_average": round(os.getloadavg()[0], 2)}
 
 
-def report(figures: dict, json_path: Path | None) -> None:
-    """Print the figures as JSON, and write them to ``json_path`` when given."""
+def report(figures: dict, json_path: Path | None, benchmark: str | None = None) -> None:
+    """Print the figures as JSON; with ``benchmark``, :func:`record` them (results folder and ``json_path``),
+    else write them to ``json_path`` when given."""
     text = json.dumps(figures, indent=2)
     print(text)
-    if json_path:
+    if benchmark:
+        record(benchmark, figures, json_path)
+    elif json_path:
         Path(json_path).write_text(text + "\n")
+
+
+def commit_id(repo: Path = REPO) -> str:
+    """``git rev-parse --short HEAD``, with ``-dirty`` when tracked files differ from it (untracked files,
+    such as new result files, do not count); ``unknown`` outside a git checkout."""
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=30)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    head = git("rev-parse", "--short", "HEAD")
+    if not head:
+        return "unknown"
+    changes = git("status", "--porcelain", "--untracked-files=no")
+    return head + ("-dirty" if changes else "")
+
+
+def stamp(benchmark: str, figures: dict, first_frame_s: float | None = None,
+          now: datetime | None = None) -> dict:
+    """What a result was measured at and under: ``benchmark``, ``commit`` (:func:`commit_id`), ``date_utc``
+    (ISO 8601, seconds), ``load_average`` (the machine's 1, 5 and 15 minute load averages at the end of the
+    run), ``cpus``, ``argv`` (the script's arguments) and, when the benchmark has one (an argument, else
+    ``figures["first_frame_s"]``), ``first_frame_s``: the same work in every run, so it tells the machine's
+    speed at the time."""
+    now = now or datetime.now(timezone.utc)
+    out = {
+        "benchmark": benchmark,
+        "commit": commit_id(),
+        "date_utc": now.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "load_average": [round(v, 2) for v in os.getloadavg()],
+        "cpus": os.cpu_count(),
+        "argv": sys.argv[1:],
+    }
+    if first_frame_s is None:
+        first_frame_s = figures.get("first_frame_s")
+    if first_frame_s is not None:
+        out["first_frame_s"] = first_frame_s
+    return out
+
+
+def record(benchmark: str, figures: dict, json_path: Path | None = None, results_dir: Path | None = None,
+           first_frame_s: float | None = None, now: datetime | None = None) -> Path:
+    """Write ``figures`` with a :func:`stamp` (under the key ``stamp``; the figures' own keys unchanged) to
+    ``<results_dir>/<benchmark>-<YYYYmmdd-HHMMSS>.json`` (UTC; default folder ``benchmarks/results``) and,
+    when given, to ``json_path`` (the same content). Returns the results file's path."""
+    now = now or datetime.now(timezone.utc)
+    stamped = {**figures, STAMP_KEY: stamp(benchmark, figures, first_frame_s, now)}
+    text = json.dumps(stamped, indent=2) + "\n"
+    folder = Path(results_dir) if results_dir is not None else RESULTS
+    folder.mkdir(parents=True, exist_ok=True)
+    base = f"{benchmark}-{now.astimezone(timezone.utc).strftime('%Y%m%d-%H%M%S')}"
+    path, k = folder / f"{base}.json", 1
+    while path.exists():  # two runs within one second
+        k += 1
+        path = folder / f"{base}-{k}.json"
+    path.write_text(text)
+    if json_path:
+        Path(json_path).write_text(text)
+    shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
+    print(f"results: {shown}", file=sys.stderr)
+    return path
 
 
 def fitted_tum_map(cfg, fit_frames: int, fit_iterations: int, later_frames: int, rng: np.random.Generator):

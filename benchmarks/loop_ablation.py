@@ -31,6 +31,7 @@ import sys
 import time
 from pathlib import Path
 
+from common import record
 from neb_slam_core.synth.generate import generate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,7 +59,7 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=None, help="only the first N frames (the loop needs them all)")
     p.add_argument("--out", type=Path, default=None, help="parent of the two run directories "
                                                             "(default runs/loop-ablation-<date-time>)")
-    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     p.add_argument("--skip-place-recognition", action="store_true")
     args = p.parse_args(argv)
 
@@ -104,8 +105,7 @@ def main() -> None:
         for key in ("revisit_recall", "false_loops_synthetic", "false_loops_tum", "query_ms_1000", "vocab_load_s"):
             figures[key] = pr.get(key)
     print(json.dumps(figures, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    record(f"loop_ablation-{name}", figures, args.json)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import json
 import time
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import numpy as np
 import torch
 import trimesh
 
+from common import record
 from neb_slam_core.config import BlockConfig, MeshConfig, RenderConfig, SamplingConfig
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.eval.recon import DepthL1Config, ReconConfig, evaluate_reconstruction
@@ -53,7 +53,7 @@ def main() -> None:
     p.add_argument("--log2-table", type=int, default=15, help="hash table size per level (15 or 14)")
     p.add_argument("--voxel", type=float, default=0.02, help="mesh voxel size (m)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args()
     torch.manual_seed(args.seed)
 
@@ -133,9 +133,7 @@ def main() -> None:
         print("seam step error         no seam crossings seen in the held-out views")
     print(f"fitting                 {1e3 * figures['fit_s_per_iteration']:.0f} ms / iteration of {args.rays} rays "
           f"(load average {figures['load_average']:.1f})")
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
-        print(f"wrote {args.json}")
+    record(f"map_fit-{args.preset}", figures, args.json)
 
 
 if __name__ == "__main__":

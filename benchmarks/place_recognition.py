@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from common import record
 from neb_slam_core.config import LoopConfig
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.geometry.rectify import Rectifier
@@ -198,7 +199,7 @@ def query_time_1000(cfg: LoopConfig, vocab: Vocabulary, n_keyframes: int = 1000,
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     p.add_argument("--vocabulary", default="", help="vocabulary file (default: the shipped one)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="override a LoopConfig field, e.g. top_k=5 (repeatable)")
@@ -277,8 +278,7 @@ def main() -> None:
     figures.update({"config": dataclasses.asdict(cfg), "load_average": round(os.getloadavg()[0], 2),
                     "cpus": os.cpu_count()})
     print(json.dumps(figures, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    record("place_recognition", figures, args.json)
 
 
 if __name__ == "__main__":

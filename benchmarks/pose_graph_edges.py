@@ -45,7 +45,7 @@ def main() -> None:
     p.add_argument("run", type=Path, help="run directory of a run without loop closure")
     p.add_argument("dataset", type=Path, help="the dataset that run processed")
     p.add_argument("--ends", type=int, nargs="+", default=[270, 285, 295], help="keyframes' frame indices")
-    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args()
     cfg = load_config(args.run / "config.yaml")
     est = read_tum_trajectory(args.run / "trajectory.txt")
@@ -90,7 +90,7 @@ def main() -> None:
             "ate_cm_tracked_edges": ate_cm(propagate_correction(poses, 1, end, truth[end])),
             "ate_cm_with_registrations": ate_cm(propagate_correction(poses, 1, end, truth[end], closer.registrations)),
         }
-    report(figures, args.json)
+    report(figures, args.json, "pose_graph_edges")
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src" / "neb_slam_ros"))  # the ROS package is colcon-built, not pip-installed
 
+from common import record  # noqa: E402
 from neb_slam_ros.suite import _env, launch  # noqa: E402
 
 
@@ -50,7 +51,7 @@ def main() -> int:
     p.add_argument("--bag", type=Path, help="bag to replay (default: the small synthetic scene)")
     p.add_argument("--config", default="ci")
     p.add_argument("--frames", type=int, default=20, help="frames to replay")
-    p.add_argument("--json", type=Path, help="also write the figures here")
+    p.add_argument("--json", type=Path, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args()
     bag = args.bag or small_bag(args.frames)
     env = _env()
@@ -70,10 +71,8 @@ def main() -> int:
             figures[f"ate_cm_{name}"] = round(run.metrics["ate_rmse_cm"], 4)
             figures["n_frames"] = n
     figures["ratio"] = round(figures["fps_one_process"] / figures["fps_separate"], 3)
-    text = json.dumps(figures, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    print(json.dumps(figures, indent=2))
+    record("ros_suite", figures, args.json)
     return 0
 
 

@@ -41,7 +41,7 @@ def main() -> None:
     p.add_argument("--fit-iterations", type=int, default=1000)
     p.add_argument("--frames", type=int, default=5)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args()
     cfg = load_config("tum")
     rng = np.random.default_rng(cfg.seed)
@@ -109,7 +109,7 @@ def main() -> None:
     print(f"mapping step {figures['map_step_ms_skip']} ms skipping, {figures['map_step_ms_all']} ms with every "
           f"sample (x{figures['map_step_ratio']}); tracking {figures['track_ms_skip']} against "
           f"{figures['track_ms_all']} ms per frame (x{figures['track_ratio']})")
-    report(figures, args.json)
+    report(figures, args.json, "sample_skip")
 
 
 if __name__ == "__main__":

@@ -96,7 +96,7 @@ def main() -> None:
     p.add_argument("--fit-iterations", type=int, default=150)
     p.add_argument("--repeats", type=int, default=5, help="timed passes per map, alternating")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
-    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -169,7 +169,7 @@ def main() -> None:
     print(f"tracking per frame, every step taken: {one_ms:.1f} ms with {n_start} block(s), {many_ms:.1f} ms with "
           f"{len(block_map)} blocks (x{many_ms / one_ms:.3f}); the tracker as it runs: "
           f"x{figures['tracker_ratio']:.3f}; blocks in the timed frusta: {one_view} -> {many_view}")
-    report(figures, args.json)
+    report(figures, args.json, "scaling")
 
 
 if __name__ == "__main__":

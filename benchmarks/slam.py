@@ -86,7 +86,7 @@ def main() -> None:
     p.add_argument("--config", default=None, help="config preset or file (default: tum / synthetic)")
     p.add_argument("--frames", type=int, default=None, help="process only the first N frames")
     p.add_argument("--out", type=Path, default=None, help="run directory (default runs/bench-<sequence>-<date-time>)")
-    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args(argv)
 
     source = source_of(args.sequence)
@@ -133,8 +133,9 @@ def main() -> None:
         if key in metrics:
             figures[key] = metrics[key]
     print(json.dumps(figures, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    from common import record
+
+    record(f"slam-{args.sequence}", figures, args.json)
 
 
 if __name__ == "__main__":

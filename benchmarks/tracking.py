@@ -47,7 +47,7 @@ def main() -> None:
     p.add_argument("--fit-iterations", type=int, default=1000)
     p.add_argument("--track-frames", type=int, default=5)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--json", type=Path, default=None, help="write the figures to this JSON file")
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args()
     cfg = load_config("tum")
     rng = np.random.default_rng(cfg.seed)
@@ -102,7 +102,7 @@ def main() -> None:
           f"{figures['normal_equations_ms_fd']} ms by forward differences (x{figures['fd_over_closed']}), "
           f"{figures['normal_equations_ms_autograd']} ms by autograd (x{figures['autograd_over_closed']}); "
           f"tracking {figures['track_ms']} ms per frame")
-    report(figures, args.json)
+    report(figures, args.json, "tracking")
 
 
 if __name__ == "__main__":

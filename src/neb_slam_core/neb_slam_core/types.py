@@ -1,6 +1,6 @@
 """Typed containers passed between the stages of the pipeline.
 
-Conventions (DESIGN.md section 3): poses are camera-to-world ``T_world_cam`` 4x4 float64 with OpenCV
+Conventions (docs/conventions.md): poses are camera-to-world ``T_world_cam`` 4x4 float64 with OpenCV
 optical axes (x right, y down, z forward), metres; depth is float32 metres with 0 = invalid; colour is
 uint8 RGB; time is integer nanoseconds.
 """

@@ -1,4 +1,4 @@
-"""NeB-SLAM ROS 2 nodes: thin rclpy wrappers over ``neb_slam_core`` (DESIGN.md section 5).
+"""NeB-SLAM ROS 2 nodes: thin rclpy wrappers over ``neb_slam_core`` (the contract: docs/topics.md).
 
 One node class per module (``tracker``, ``mapper``, ``loop_closer``, ``bag_replay``, ``slam``), each with a
 ``main()`` that ``ros2 run neb_slam_ros <node>`` executes. Importing this package does not import rclpy.

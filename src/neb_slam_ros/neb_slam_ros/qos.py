@@ -1,4 +1,4 @@
-"""The QoS profiles of the topic contract (DESIGN.md section 5)."""
+"""The QoS profiles of the topic contract (docs/topics.md)."""
 
 from __future__ import annotations
 

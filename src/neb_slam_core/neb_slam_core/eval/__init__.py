@@ -1,4 +1,5 @@
-"""Evaluation (DESIGN.md section 6): trajectory accuracy (ATE, RPE), reconstruction metrics, plots.
+"""Evaluation (the protocol: docs/evaluation.md): trajectory accuracy (ATE, RPE), reconstruction metrics,
+plots.
 
 - :mod:`.trajectory_metrics`: association by stamp, rigid Horn/Umeyama alignment, ATE, RPE.
 - :mod:`.recon`: accuracy, completion, completion ratio, culling to the cameras' view, Depth L1.

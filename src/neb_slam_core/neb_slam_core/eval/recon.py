@@ -1,4 +1,4 @@
-"""Reconstruction quality of a mesh against a ground-truth mesh (the paper's protocol, section 6 of DESIGN.md).
+"""Reconstruction quality of a mesh against a ground-truth mesh (the paper's protocol, docs/evaluation.md).
 
 3D metrics (iMAP / NICE-SLAM / Co-SLAM style), on points sampled uniformly by area on each surface
 (200,000 by default; each mesh with a generator seeded by the same seed, so a mesh against itself
@@ -10,7 +10,7 @@ scores exactly 0):
   than the threshold (5 cm by default).
 
 (The paper's equations swap the two point sets relative to its own text; this follows the text, iMAP's
-definitions and DESIGN.md.)
+definitions and docs/evaluation.md.)
 
 Sampling floor [cm] (ours): the distance between two point samplings of one surface is not zero; for an
 area A and n points, a point's nearest neighbour is about 0.5 sqrt(A / n) away. So each result also

@@ -57,7 +57,8 @@ def load_map_for(cfg: SlamConfig, path) -> BlockMap:
 
     Its block, encoding and decoder configs must be ``cfg``'s (a map is only meaningful to the decoders
     that read it); a difference raises :class:`DatasetError` naming the file and the first differing
-    field. The blocks lose their keyframe links: those keyframes belong to the run that saved the map.
+    field. The map comes without keyframes (those belong to the run that saved it): the engine's keyframe
+    store starts empty and assigns its own keyframes to the blocks.
     """
     from .config import config_to_dict
     from .errors import DatasetError
@@ -73,8 +74,6 @@ def load_map_for(cfg: SlamConfig, path) -> BlockMap:
                                          f"configuration has {mine.get(key)!r}: run with the map's configuration")
     if len(block_map) == 0:
         raise DatasetError(path, "the map has no blocks")
-    for block in block_map.blocks:
-        block.keyframe_ids = []
     return block_map
 
 
@@ -374,14 +373,14 @@ class Backend:
         return MappingStep(kf, True, 1e3 * (time.perf_counter() - t0), res.changed_block_ids)
 
     def _assign_blocks(self, kf: Keyframe) -> None:
-        """Make ``kf`` a keyframe of every block holding more than a tenth of its observed points (the
-        blocks whose newest keyframes get the extra N_a rays)."""
+        """Make ``kf`` a keyframe of every block holding more than a tenth of its observed points at its
+        current pose, and of no other (the blocks whose newest keyframes get the extra N_a rays)."""
         pts = torch.as_tensor(kf.observed_points(), dtype=torch.float32, device=self.block_map.device)
+        block_ids = []
         if len(pts):
             share = self.block_map.contains(pts).float().mean(dim=0)  # (M,)
-            for block_id in (share > 0.1).nonzero(as_tuple=True)[0].tolist():
-                kf.block_ids.append(block_id)
-                self.block_map.blocks[block_id].keyframe_ids.append(kf.keyframe_id)
+            block_ids = (share > 0.1).nonzero(as_tuple=True)[0].tolist()
+        self.keyframes.assign(kf, block_ids)
 
     def correct_loop(self, poses: np.ndarray, start_id: int) -> MappingStep:
         """Apply a loop correction: keyframe poses ``(K, 4, 4)`` (those after ``start_id`` moved), then
@@ -391,12 +390,7 @@ class Backend:
         t0 = time.perf_counter()
         self.keyframes.set_poses(poses)
         for kf in self.keyframes.keyframes[start_id + 1:]:
-            for block_id in kf.block_ids:
-                self.block_map.blocks[block_id].keyframe_ids.remove(kf.keyframe_id)
-            kf.block_ids = []
             self._assign_blocks(kf)
-        for block in self.block_map.blocks:
-            block.keyframe_ids.sort()
         c = self.cfg.loop
         first = self.mapper.optimise(c.map_iterations, optimise_poses=False)
         second = self.mapper.optimise(c.joint_iterations, optimise_poses=True, fixed_until=start_id)

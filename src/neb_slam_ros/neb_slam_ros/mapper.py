@@ -224,7 +224,7 @@ class MapperNode(NebNode):
         extra = {"keyframe_poses": torch.from_numpy(kfs.poses() if len(kfs) else np.zeros((0, 4, 4))),
                  "keyframe_stamps_ns": [int(kf.stamp_ns) for kf in kfs.keyframes],
                  "keyframe_frame_indices": [int(kf.frame_index) for kf in kfs.keyframes]}
-        return save_map(self.block_map, run_dir.file(MAP_FILE), extra=extra)
+        return save_map(self.block_map, run_dir.file(MAP_FILE), extra=extra, block_keyframes=kfs.block_keyframes())
 
     def trajectory(self) -> Trajectory:
         kfs = self.backend.keyframes

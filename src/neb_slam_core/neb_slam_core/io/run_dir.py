@@ -227,7 +227,8 @@ class RunDirectory:
     def write_map(self, slam: "Slam", frames: list[FrameLog]) -> Path:
         from ..scene.persistence import save_map
 
-        return save_map(slam.block_map, self.file(MAP_FILE), extra=map_extra(slam, frames))
+        return save_map(slam.block_map, self.file(MAP_FILE), extra=map_extra(slam, frames),
+                        block_keyframes=slam.keyframes.block_keyframes())
 
     def write_mesh(self, mesh) -> Path:
         from ..mesh import save_mesh

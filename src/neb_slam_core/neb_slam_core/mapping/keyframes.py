@@ -1,8 +1,11 @@
-"""The keyframe store: a random subset of each keyframe's pixels (as Co-SLAM keeps them) and its pose."""
+"""The keyframe store: a random subset of each keyframe's pixels (as Co-SLAM keeps them), its pose, and
+which blocks each keyframe belongs to."""
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -21,7 +24,7 @@ class Keyframe:
         stamp_ns: its time stamp.
         T_world_cam: current pose estimate (float64 4x4), refined by mapping and loop closure.
         pixels: the kept pixels (camera-frame rays with colour and depth).
-        block_ids: the blocks it belongs to.
+        block_ids: the blocks it belongs to, ascending (set through :meth:`KeyframeStore.assign`).
     """
 
     keyframe_id: int
@@ -40,7 +43,8 @@ class Keyframe:
 
 
 class KeyframeStore:
-    """All keyframes, with their pixels concatenated for fast random ray draws."""
+    """All keyframes, with their pixels concatenated for fast random ray draws, and the index of the
+    keyframes that belong to each block (mapping draws its extra N_a rays from the newest block's)."""
 
     def __init__(self, pixel_fraction: float, seed: int = 0, device: torch.device | str = "cpu"):
         self.pixel_fraction = pixel_fraction
@@ -48,6 +52,7 @@ class KeyframeStore:
         self.device = device
         self.keyframes: list[Keyframe] = []
         self._flat: tuple[torch.Tensor, ...] | None = None
+        self._block_keyframes: dict[int, list[int]] = {}  # block id -> keyframe ids, ascending
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -71,6 +76,26 @@ class KeyframeStore:
     def set_poses(self, poses: np.ndarray) -> None:
         for kf, T in zip(self.keyframes, poses):
             kf.T_world_cam = np.array(T, dtype=np.float64)
+
+    # ------------------------------------------------------------------ blocks
+
+    def assign(self, kf: Keyframe, block_ids: Iterable[int]) -> None:
+        """Make ``kf`` a keyframe of exactly the blocks ``block_ids``, replacing what it belonged to before
+        (a keyframe moved by a loop correction is reassigned to the blocks its points now fall in). Both
+        sides stay ascending: ``kf.block_ids`` and each block's keyframe ids."""
+        for block_id in kf.block_ids:
+            self._block_keyframes[block_id].remove(kf.keyframe_id)
+        kf.block_ids = sorted(set(int(b) for b in block_ids))
+        for block_id in kf.block_ids:
+            bisect.insort(self._block_keyframes.setdefault(block_id, []), kf.keyframe_id)
+
+    def keyframes_of_block(self, block_id: int) -> list[int]:
+        """Ids of the keyframes that belong to block ``block_id``, ascending (empty: none)."""
+        return list(self._block_keyframes.get(block_id, ()))
+
+    def block_keyframes(self) -> dict[int, list[int]]:
+        """The whole index: block id -> ids of its keyframes, ascending (blocks without keyframes left out)."""
+        return {b: list(ids) for b, ids in sorted(self._block_keyframes.items()) if ids}
 
     def flat(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """All kept pixels: dirs_cam (P, 3), rgb (P, 3), depth (P,), keyframe index (P,)."""

@@ -76,7 +76,8 @@ class Mapper:
         pose_opt = None
         if optimise_poses and len(kfs) > fixed_until + 1:
             pose_opt = torch.optim.Adam([poses.delta], lr=self.cfg.pose_lr)
-        newest_kfs = self.block_map.blocks[-1].keyframe_ids if len(self.block_map) > 1 else []
+        newest = self.block_map.blocks[-1].block_id if len(self.block_map) > 1 else None
+        newest_kfs = [] if newest is None else self.keyframes.keyframes_of_block(newest)
         loss_value = float("nan")
         changed: set[int] = set()
         for _ in range(iterations):

@@ -12,8 +12,8 @@ from .hash_grid import HashGrid
 class NeuralBlock(nn.Module):
     """Block ``block_id`` of edge ``edge_m`` centred at ``centre_world`` (metres, world frame).
 
-    Its local coordinate maps the cube onto [0, 1]^3: ``(x - C) / edge + 1/2``. ``keyframe_ids`` lists the
-    keyframes that belong to it (the frame that allocated it and later keyframes that observe it).
+    Its local coordinate maps the cube onto [0, 1]^3: ``(x - C) / edge + 1/2``. Which keyframes belong to
+    it is mapping state, kept by :class:`~neb_slam_core.mapping.keyframes.KeyframeStore`.
     """
 
     def __init__(self, block_id: int, centre_world, edge_m: float, grid_cfg: HashGridConfig,
@@ -23,7 +23,6 @@ class NeuralBlock(nn.Module):
         self.edge_m = float(edge_m)
         self.register_buffer("centre", torch.as_tensor(centre_world, dtype=torch.float32).reshape(3).clone())
         self.grid = HashGrid(grid_cfg, backend=backend, seed=seed)
-        self.keyframe_ids: list[int] = []
 
     @property
     def min_corner(self) -> torch.Tensor:
@@ -44,4 +43,4 @@ class NeuralBlock(nn.Module):
 
     def extra_repr(self) -> str:
         c = ", ".join(f"{v:.2f}" for v in self.centre.tolist())
-        return f"id={self.block_id}, centre=({c}), edge={self.edge_m} m, keyframes={len(self.keyframe_ids)}"
+        return f"id={self.block_id}, centre=({c}), edge={self.edge_m} m"

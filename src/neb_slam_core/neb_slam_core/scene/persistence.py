@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -15,11 +16,17 @@ MAP_FORMAT = "neb_slam_map"
 MAP_FORMAT_VERSION = 1
 
 
-def save_map(block_map: BlockMap, path: str | Path, extra: dict | None = None) -> Path:
+def save_map(block_map: BlockMap, path: str | Path, extra: dict | None = None,
+             block_keyframes: Mapping[int, Sequence[int]] | None = None) -> Path:
     """Write the map to ``path`` (a torch file). ``extra`` is stored alongside (e.g. keyframe poses).
 
-    Written to a temporary file first and renamed, so an interrupted save never leaves a broken file.
+    Each block's entry holds ``keyframe_ids``: its keyframes in ``block_keyframes`` (block id -> keyframe
+    ids, the run's :meth:`~neb_slam_core.mapping.keyframes.KeyframeStore.block_keyframes`), empty when
+    not given. The field is part of format version 1; :func:`load_map` does not read it back, since
+    keyframes belong to the run that saved the map. Written to a temporary file first and renamed, so an
+    interrupted save never leaves a broken file.
     """
+    block_keyframes = block_keyframes or {}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
@@ -34,7 +41,7 @@ def save_map(block_map: BlockMap, path: str | Path, extra: dict | None = None) -
         "seed": block_map.seed,
         "blocks": [
             {"id": b.block_id, "centre": b.centre.detach().cpu(), "table": b.grid.table.detach().cpu(),
-             "keyframe_ids": list(b.keyframe_ids)}
+             "keyframe_ids": [int(k) for k in block_keyframes.get(b.block_id, ())]}
             for b in block_map.blocks
         ],
         "decoders": {k: v.detach().cpu() for k, v in block_map.decoders.state_dict().items()},
@@ -48,7 +55,8 @@ def save_map(block_map: BlockMap, path: str | Path, extra: dict | None = None) -
 
 def load_map(path: str | Path, device: str | torch.device = "cpu",
              grid_backend: str = "auto") -> tuple[BlockMap, dict]:
-    """Read a map written by :func:`save_map`; returns the map and the stored ``extra``."""
+    """Read a map written by :func:`save_map`; returns the map and the stored ``extra`` (the blocks'
+    ``keyframe_ids`` are not read: see :func:`save_map`)."""
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "map file not found")
@@ -73,6 +81,5 @@ def load_map(path: str | Path, device: str | torch.device = "cpu",
                                      f"the stored config ({tuple(block.grid.table.shape)})")
         with torch.no_grad():
             block.grid.table.copy_(entry["table"])
-        block.keyframe_ids = list(entry["keyframe_ids"])
     block_map.decoders.load_state_dict(payload["decoders"])
     return block_map, payload.get("extra", {})

@@ -27,7 +27,8 @@ from pathlib import Path
 
 from rclpy.node import Node
 
-from neb_slam_core.io.run_dir import RunDirectory, RunLog, RunOutputOptions, write_run
+from neb_slam_core.eval.run_report import RunOutputOptions, write_run
+from neb_slam_core.io.run_dir import RunDirectory, RunLog
 from neb_slam_core.slam import Slam
 from neb_slam_core.types import RgbdFrame
 from neb_slam_ros._node_main import run_nodes

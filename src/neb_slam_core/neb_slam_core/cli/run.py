@@ -144,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
 
     from ..datasets import open_dataset
     from ..errors import ConfigError, DatasetError
-    from ..io.run_dir import RunDirectory, RunLog, RunOutputOptions, write_run
+    from ..eval.run_report import RunOutputOptions, write_run
+    from ..io.run_dir import RunDirectory, RunLog
 
     # --- check everything before the (long) run starts
     dataset = open_dataset(args.source, args.format)

@@ -1,6 +1,6 @@
 """Run-level evaluation reports: the JSON-ready figures of ``metrics.json`` and the standard plots.
 
-Shared by ``neb-slam eval`` and the run directory writer of ``neb-slam run``.
+Shared by ``neb-slam eval`` and the run report of ``neb-slam run`` (:mod:`.run_report`).
 """
 
 from __future__ import annotations

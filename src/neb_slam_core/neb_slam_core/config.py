@@ -243,6 +243,11 @@ class TrackingConfig:
     than ``gn_stop_step_m``) or ``adam`` (the paper: ``iterations`` Adam steps at ``lr``). On TUM fr1_xyz
     Gauss-Newton takes 6 steps on average to the pose that Adam approaches in 40 or more.
 
+    ``motion_model``: the constant-velocity prediction (:meth:`neb_slam_core.slam.Frontend.predict`):
+    ``frames`` (the paper's: by frame count) or ``stamps`` (by the stamps of the last two tracked frames,
+    so that dropped or failed frames between them do not matter; at most ``max_extrapolation`` times
+    their motion).
+
     ``gn_stop_step_m`` 0.5 mm: on TUM fr1_xyz the objective's minimum itself moves by 4-13 mm between
     two draws of the ``n_rays`` pixels (frames 40-64 against a 40-frame map), so converging further
     than that buys nothing. At 0.5 mm a frame ends 0.14-1.44 mm from its own minimum (0.09-1.26 mm at
@@ -259,6 +264,8 @@ class TrackingConfig:
     method: str = "gauss_newton"
     gn_damping: float = 1e-4
     gn_stop_step_m: float = 5e-4
+    motion_model: str = "frames"
+    max_extrapolation: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -354,6 +361,24 @@ class LoopConfig:
 
 
 @dataclass(frozen=True)
+class LiveConfig:
+    """The concurrent engine (:mod:`neb_slam_core.live`: ``neb-slam run --live``, the ROS ``slam`` node
+    without lockstep), where tracking never waits for mapping or loop closure.
+
+    ``first_iterations``: map-only steps on the first frame before the second frame is tracked (the
+    rest of ``mapping.first_iterations`` runs in the background). ``chunk_iterations``: background work
+    (that rest, a loop correction's re-optimisation) runs in chunks of this many steps between
+    keyframes. ``torch_threads``: torch's intra-op threads of each thread that runs the engine (0: torch's
+    default; the ``live`` preset sets 1, so that on two cores the tracker and the mapper each keep one
+    busy instead of competing for both); the ROS nodes apply it too.
+    """
+
+    first_iterations: int = 30
+    chunk_iterations: int = 10
+    torch_threads: int = 0
+
+
+@dataclass(frozen=True)
 class SlamConfig:
     """The whole engine's configuration; each component receives only its own part."""
 
@@ -369,3 +394,4 @@ class SlamConfig:
     device: str = "cpu"
     seed: int = 0
     loop: LoopConfig = LoopConfig()
+    live: LiveConfig = LiveConfig()

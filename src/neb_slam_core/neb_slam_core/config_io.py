@@ -49,6 +49,7 @@ PRESET_FOLDER = "configs"
 #: configuration does not import torch; a test checks that the two agree)
 GRID_BACKENDS = ("auto", "fast", "reference")
 TRACKING_METHODS = ("adam", "gauss_newton")
+MOTION_MODELS = ("frames", "stamps")
 
 _PRESET_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]*")
 _DOTTED_KEY = re.compile(r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*")
@@ -410,6 +411,8 @@ RULES: dict[str, Any] = {
     "tracking.method": _Choice(TRACKING_METHODS),
     "tracking.gn_damping": _NON_NEGATIVE,
     "tracking.gn_stop_step_m": _NON_NEGATIVE,
+    "tracking.motion_model": _Choice(MOTION_MODELS),
+    "tracking.max_extrapolation": _NON_NEGATIVE,
     "keyframes.every": _POSITIVE_INT,
     "keyframes.pixel_fraction": _Num(0.0, 1.0, lo_open=True, hi_open=False),
     "mapping.every": _POSITIVE_INT,
@@ -454,6 +457,9 @@ RULES: dict[str, Any] = {
     "loop.register_neighbours": _COUNT,
     "loop.map_iterations": _COUNT,
     "loop.joint_iterations": _COUNT,
+    "live.first_iterations": _POSITIVE_INT,
+    "live.chunk_iterations": _POSITIVE_INT,
+    "live.torch_threads": _COUNT,
 }
 
 

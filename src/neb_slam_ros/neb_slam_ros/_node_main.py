@@ -20,6 +20,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 
 import rclpy
@@ -31,6 +32,8 @@ from neb_slam_ros.params import ParameterError
 
 #: longest time a node's main thread stays in rcl's wait before Python sees a pending signal
 SPIN_SLICE_S = 0.5
+#: after a stop, how long the executor goes on running callbacks of messages already received
+DRAIN_S = 0.5
 
 
 def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -> int:
@@ -88,6 +91,10 @@ def run_nodes(makers: Sequence[Callable[[], Node | None]], args: Sequence[str] |
         # so a stop is acted on within one
         while rclpy.ok() and not _stop.is_set():
             executor.spin_once(timeout_sec=SPIN_SLICE_S)
+        # the callbacks of messages already received (a replay's last frames) run before the nodes close
+        deadline = time.monotonic() + DRAIN_S
+        while rclpy.ok() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # a second Ctrl-C during start-up, or the context shut down elsewhere
     except ParameterError as exc:

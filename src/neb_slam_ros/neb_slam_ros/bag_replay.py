@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from geometry_msgs.msg import PoseStamped
+from rclpy.duration import Duration
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
 
@@ -139,6 +140,10 @@ class BagReplayNode(NebNode):
                 if not self.opt.loop:
                     break
             if not self.stopping:
+                # the last frames must reach their subscribers before the process ends (reliable QoS: they
+                # acknowledge them)
+                for pub in (self.pub_info, self.pub_depth, self.pub_rgb):
+                    pub.wait_for_all_acked(Duration(seconds=5.0))
                 self.get_logger().info(f"neb_slam bag_replay finished: {self.n_published} frames published")
                 request_stop()  # ends the process's spin: the replay is over
         except Exception as exc:  # report, and end the process rather than hang

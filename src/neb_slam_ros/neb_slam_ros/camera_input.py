@@ -128,6 +128,24 @@ class CameraInput:
         """The oldest queued frame, or None (call with the condition held)."""
         return self._queue.popleft() if self._queue else None
 
+    def drop_queued(self) -> int:
+        """Drop (and count) every queued frame: at shutdown, frames the engine will never process. Returns
+        how many (call with the condition held)."""
+        n = len(self._queue)
+        self.n_dropped += n
+        self._queue.clear()
+        return n
+
+    def pop_newest(self) -> RgbdFrame | None:
+        """The newest queued frame, or None; the older ones are dropped and counted (call with the
+        condition held). A live engine takes the newest frame whenever it is free."""
+        if not self._queue:
+            return None
+        frame = self._queue.pop()
+        self.n_dropped += len(self._queue)
+        self._queue.clear()
+        return frame
+
     # ------------------------------------------------------------------ callbacks (executor thread)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:

@@ -159,8 +159,16 @@ class NebNode(Node):
 
     def start_worker(self) -> None:
         """Start the worker thread (at the end of the subclass' constructor, once its state exists)."""
-        self._worker = threading.Thread(target=self.work_loop, name=f"{self.get_name()}-worker", daemon=True)
+        self._worker = threading.Thread(target=self._run_worker, name=f"{self.get_name()}-worker", daemon=True)
         self._worker.start()
+
+    def _run_worker(self) -> None:
+        threads = self.cfg.live.torch_threads if self.cfg is not None else 0
+        if threads > 0:  # the engine config's thread count, in the thread that runs the engine
+            import torch
+
+            torch.set_num_threads(threads)
+        self.work_loop()
 
     def work_loop(self) -> None:
         """Wait for work or requests, take them under the lock, do them outside it, until stopped."""

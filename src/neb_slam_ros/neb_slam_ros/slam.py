@@ -29,6 +29,7 @@ from rclpy.node import Node
 
 from neb_slam_core.eval.run_report import RunOutputOptions, write_run
 from neb_slam_core.io.run_dir import RunDirectory, RunLog
+from neb_slam_core.live import LiveSlam
 from neb_slam_core.slam import Slam
 from neb_slam_core.types import RgbdFrame
 from neb_slam_ros._node_main import run_nodes
@@ -48,8 +49,15 @@ class SlamOptions:
     initial_pose_timeout_s: float = 10.0
     bag: str = ""
     map_file: str = ""
+    live: bool = True
+    lockstep: bool = False
 
     PARAMETER_DOCS = {
+        "live": "tracking never waits: mapping and loop closure run in threads beside it and the newest frame "
+                "is tracked whenever the engine is free (false: every frame in the paper's order, as "
+                "neb-slam run; lockstep with bag implies false)",
+        "lockstep": "with bag: the in-process replay publishes the next frame after this one's pose (bag_replay's "
+                    "parameter; the engine then processes every frame in order, live or not)",
         "map_file": "a map checkpoint (map.pt) to continue; empty: start from an empty map",
         "output_dir": "run directory written at shutdown (and by save_mesh / save_map); empty: runs/slam-<date>-<time>",
         "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
@@ -72,7 +80,9 @@ class SlamNode(NebNode):
         self.input_opt = declare_options(self, InputOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/slam-%Y%m%d-%H%M%S"))
         self._map = map_parameter(self.cfg, self.opt.map_file)  # checked at start, used at the first frame
-        self.slam: Slam | None = None  # made at the first frame (its pose may come from a topic)
+        self.live = self.opt.live and not (self.opt.bag and self.opt.lockstep)
+        self.slam: Slam | LiveSlam | None = None  # made at the first frame (its pose may come from a topic)
+        self.frames_in = 0
         self.run_log = RunLog()
         self._t_first: float | None = None
         self.input = CameraInput(self, self.input_opt, self.cond)
@@ -93,11 +103,18 @@ class SlamNode(NebNode):
         return self.input.has_frame
 
     def take_work(self) -> RgbdFrame | None:
-        return self.input.pop()
+        return self.input.pop_newest() if self.live else self.input.pop()
 
     def do_work(self, frame: RgbdFrame | None) -> None:
         if frame is None:
             return
+        if self.live and self.slam is not None and self.slam.n_frames == 1:
+            self.slam.wait_for_map()  # the only wait of a live engine: then the newest frame, not this one
+            with self.cond:
+                newer = self.input.pop_newest()
+            if newer is not None:
+                self.input.n_dropped += 1
+                frame = newer
         try:
             self._process(frame)
         except Exception as exc:  # a frame must never kill the node
@@ -114,12 +131,14 @@ class SlamNode(NebNode):
             if self.input_opt.ground_truth_topic and gt is None:
                 self.get_logger().warning(f"no pose on {self.input_opt.ground_truth_topic} near the first frame: "
                                           "starting from the identity")
-            self.slam, self._map = Slam(self.cfg, gt, self._map), None
+            engine = LiveSlam if self.live else Slam
+            self.slam, self._map = engine(self.cfg, gt, self._map), None
             self._t_first = time.perf_counter()
             self._intrinsics = frame.intrinsics
         self.run_log.begin(frame)
         r = self.slam.process(frame)
         self.run_log.end(r)
+        self._t_last = time.perf_counter()
         self.poses.publish_path(self.slam.trajectory())
         if r.new_block_id is not None:
             self.poses.publish_blocks(block_centres(self.slam.block_map), r.stamp_ns)
@@ -135,6 +154,10 @@ class SlamNode(NebNode):
         if self.slam is None or self.slam.n_frames == 0:
             self.final_log("neb_slam slam stopped before any frame: nothing to write", "WARN")
             return
+        with self.cond:
+            self.input.drop_queued()  # arrived after the last frame the engine took
+        if self.live:
+            self.slam.close()
         run_dir = self.map_outputs.run_dir()
         run_dir.write_config(self.cfg)
         run_dir.write_intrinsics(self._intrinsics)
@@ -142,6 +165,12 @@ class SlamNode(NebNode):
         options = RunOutputOptions(mesh_cfg=self.cfg.mesh, first_pose_from_gt=first_gt, progress=False)
         wall_s = time.perf_counter() - (self._t_first or time.perf_counter())
         summary = write_run(run_dir, self.slam, self.run_log, options, "complete", wall_s)
+        summary.metrics["frames_in"] = self.input.n_accepted
+        summary.metrics["frames_dropped"] = self.input.n_dropped
+        if self.live:
+            summary.metrics.update(self.slam.live_metrics(self.input.n_accepted, self.input.n_dropped,
+                                                          self._t_last - self._t_first))
+        run_dir.write_metrics(summary.metrics)
         if summary.mesh is not None:  # the final mesh, also to the topic's subscribers
             self.map_outputs.publish(summary.mesh, FINAL_MESH_ACK_S)
         m = summary.metrics

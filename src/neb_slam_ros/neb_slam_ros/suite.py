@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -66,24 +67,27 @@ def _env() -> dict[str, str]:
 def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_process: bool = False,
            seed: int = 0, mesh_period_s: float = 0.0, env: dict[str, str] | None = None,
            extra_params: dict[str, object] | None = None, start: int = 0,
-           map_file: Path | None = None) -> SuiteRun:
+           map_file: Path | None = None, live: bool = False, rate: float = 1.0) -> SuiteRun:
     """Replay ``bag`` (``count`` frames from frame ``start``; 0: all) through the suite into run directory
-    ``out``, on an empty map or continuing the checkpoint ``map_file``."""
+    ``out``, on an empty map or continuing the checkpoint ``map_file``. By default in lockstep, as fast as
+    the engine goes; ``live``: at ``rate`` times the recorded speed without lockstep, the engine taking
+    the newest frame whenever it is free (the tracker waits for no map update or loop verdict)."""
     out.mkdir(parents=True, exist_ok=True)
     logs_dir = out / "logs"
     logs_dir.mkdir(exist_ok=True)
     env = env or _env()
     engine = {"config": config, "seed": seed, **(extra_params or {})}
     camera = {"reliable_inputs": True, "ground_truth_topic": "ground_truth/pose"}
-    replay = {"bag": str(bag), "lockstep": True, "rate": 0.0, "count": count, "start": start}
+    replay = {"bag": str(bag), "lockstep": not live, "rate": rate if live else 0.0, "count": count, "start": start}
     resume = {} if map_file is None else {"map_file": str(map_file)}
     if one_process:
         plan = {"slam": {**engine, **camera, **replay, **resume, "output_dir": str(out),
-                         "mesh_period_s": mesh_period_s}}
+                         "mesh_period_s": mesh_period_s, "live": live}}
     else:
+        sync = {"map_sync": not live, "loop_sync": not live}
         plan = {"mapper": {**engine, **resume, "output_dir": str(out), "mesh_period_s": mesh_period_s},
                 "loop_closer": engine,
-                "tracker": {**engine, **camera, "loop_sync": True, "wait_for_map": map_file is not None},
+                "tracker": {**engine, **camera, **sync, "wait_for_map": map_file is not None},
                 "bag_replay": replay}
     procs: dict[str, subprocess.Popen] = {}
     run = SuiteRun(out, {}, 0.0)
@@ -110,6 +114,7 @@ def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_
     run.replay_s = _replay_span_s(run.logs["slam" if one_process else "bag_replay"].read_text())
     if not one_process:
         run.metrics = finish_run_directory(out, bag, config, run.wall_s)
+        run.metrics.update(tracker_summary(run.logs["tracker"].read_text()))
     else:
         run.metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
     if run.replay_s > 0:
@@ -117,6 +122,21 @@ def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_
         run.metrics["fps"] = run.metrics["n_frames"] / run.replay_s
         (out / "metrics.json").write_text(json.dumps(run.metrics, indent=2) + "\n")
     return run
+
+
+_TRACKER_SUMMARY = re.compile(r"tracker stopped: (\d+) frames tracked, .* (\d+) dropped, .*; (\d+) frames in, "
+                              r"mapping lag (\d+) \(max (\d+)\)")
+
+
+def tracker_summary(log_text: str) -> dict:
+    """What the tracker's last log line says: frames tracked, in and dropped, the mapping lag at the end and
+    its maximum (empty when the line is missing)."""
+    found = _TRACKER_SUMMARY.findall(log_text)
+    if not found:
+        return {}
+    tracked, dropped, frames_in, lag, lag_max = map(int, found[-1])
+    return {"frames_tracked": tracked, "frames_in": frames_in, "frames_dropped": dropped,
+            "mapping_lag_end": lag, "mapping_lag_max": lag_max}
 
 
 def _replay_span_s(log_text: str) -> float:

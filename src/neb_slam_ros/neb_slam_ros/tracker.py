@@ -88,6 +88,8 @@ class TrackerNode(NebNode):
         self._loop_checked = -1
         self._map_version = 0
         self._waited_since: float | None = None
+        self._keyframe_stamps: list[int] = []
+        self._lag_max = 0
 
         self.input = CameraInput(self, self.input_opt, self.cond)
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
@@ -134,7 +136,10 @@ class TrackerNode(NebNode):
     def take_work(self) -> tuple[list, RgbdFrame | None]:
         updates = list(self._updates)
         self._updates.clear()
-        return updates, None if self._waiting_for_map() else self.input.pop()
+        if self._waiting_for_map():
+            return updates, None
+        # in sync with the mapper every frame is tracked in order; otherwise the newest one
+        return updates, self.input.pop() if self.opt.map_sync else self.input.pop_newest()
 
     def do_work(self, work: tuple[list, RgbdFrame | None]) -> None:
         updates, frame = work
@@ -197,6 +202,8 @@ class TrackerNode(NebNode):
             self.poses.publish_blocks(block_centres(self.block_map), r.stamp_ns)
         if step.keyframe_id is not None:
             self._publish_keyframe(step)
+            self._keyframe_stamps.append(r.stamp_ns)
+        self._lag_max = max(self._lag_max, self.mapping_lag())
         with self.cond:
             if step.map_now and (self.opt.map_sync or step.first):
                 self._awaited_ack = r.stamp_ns
@@ -220,10 +227,15 @@ class TrackerNode(NebNode):
 
     # ------------------------------------------------------------------ shutdown
 
+    def mapping_lag(self) -> int:
+        """Keyframes sent to the mapper that no map update has acknowledged yet."""
+        return sum(1 for s in self._keyframe_stamps if s > self._acked)
+
     def finish(self) -> None:
         n = 0 if self.frontend is None else self.frontend.n_frames
         self.final_log(f"neb_slam tracker stopped: {n} frames tracked, {len(self.block_map)} blocks, "
-                       f"{self.input.n_dropped} dropped, {self.input.warnings.total} input warnings")
+                       f"{self.input.n_dropped} dropped, {self.input.warnings.total} input warnings; "
+                       f"{self.input.n_accepted} frames in, mapping lag {self.mapping_lag()} (max {self._lag_max})")
 
 
 def main(args: Sequence[str] | None = None) -> int:

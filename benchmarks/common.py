@@ -126,28 +126,25 @@ def record(benchmark: str, figures: dict, json_path: Path | None = None, results
 
 
 def fitted_tum_map(cfg, fit_frames: int, fit_iterations: int, later_frames: int, rng: np.random.Generator):
-    """A block map fitted with ground-truth poses to TUM frames 0, 2, 4, ... (``fit_frames`` of them, the
-    config's mapping rays for ``fit_iterations``), and the ``later_frames`` rectified frames after them.
-    Exits with a message when the TUM frames of ``../shared/data`` are absent."""
-    import torch
-
+    """A block map fitted by the engine's own allocation and mapping at the ground-truth poses of TUM
+    frames 0, 2, 4, ... (``fit_frames`` of them, each a keyframe; ``fit_iterations`` mapping steps with
+    the poses held, :class:`~neb_slam_core.slam.KnownPoseMapping`), and the ``later_frames`` rectified
+    frames after them. The fit draws nothing from ``rng`` (the engine's generators are seeded by
+    ``cfg.seed``), so the caller's draws after it are its own. Exits with a message when the TUM frames of
+    ``../shared/data`` are absent."""
     from neb_slam_core.datasets import open_dataset
     from neb_slam_core.geometry.rectify import Rectifier
-    from neb_slam_core.mapping.fit import FitConfig, FrameRayPool, allocate_blocks, fit_map
-    from neb_slam_core.slam import new_block_map
+    from neb_slam_core.slam import KnownPoseMapping
 
     if not TUM.is_dir():
         sys.exit(f"{TUM} not found: this benchmark needs the TUM frames of ../shared/data")
-    torch.manual_seed(cfg.seed)
     rectify = Rectifier()
     ds = open_dataset(TUM)
     usable = [i for i in range(len(ds)) if ds[i].T_world_cam is not None]
     fit = [rectify(ds[i]) for i in usable[:2 * fit_frames:2]]
     later = [rectify(ds[i]) for i in usable[2 * fit_frames:2 * fit_frames + later_frames]]
-    s = cfg.render.sampling
-    block_map = new_block_map(cfg)
-    allocate_blocks(block_map, fit, [f.T_world_cam for f in fit], s.near_m, s.far_m, rng)
-    fit_map(block_map, FrameRayPool(fit, [f.T_world_cam for f in fit]), cfg.render,
-            FitConfig(iterations=fit_iterations, rays_per_iteration=cfg.mapping.n_rays), seed=cfg.seed,
-            progress=True)
-    return block_map, later
+    mapping = KnownPoseMapping(cfg)
+    for frame in fit:
+        mapping.add(frame)
+    mapping.optimise(fit_iterations, progress=True)
+    return mapping.block_map, later

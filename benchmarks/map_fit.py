@@ -1,8 +1,10 @@
 """Fit the neural block map alone to a synthetic scene with ground-truth poses, and measure it.
 
-Generates (once, cached under .cache/scenes/) a synthetic preset, allocates blocks along the
-ground-truth trajectory with the paper's tau rule, optimises blocks and decoders on every
-``--train-stride``-th frame, then reports:
+Generates (once, cached under .cache/scenes/) a synthetic preset and maps every ``--train-stride``-th
+frame at its ground-truth pose with the engine's own steps (:class:`~neb_slam_core.slam.KnownPoseMapping`):
+blocks allocated by the paper's tau rule, each frame a keyframe keeping ``--pixel-fraction`` of its
+pixels, then ``--iterations`` mapping steps (N_m = ``--rays`` rays from all keyframes plus N_a from the
+newest block's) with the poses held. Then it reports:
 
 - blocks allocated and parameter MB (blocks x per-block grid + decoders);
 - rendered depth L1 on held-out frames (frames between the training ones);
@@ -22,21 +24,21 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import torch
 import trimesh
 
 from common import record
-from neb_slam_core.config import BlockConfig, MeshConfig, RenderConfig, SamplingConfig
+from neb_slam_core.config import BlockConfig, KeyframeConfig, MappingConfig, MeshConfig, RenderConfig, SamplingConfig, SlamConfig
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.eval.recon import DepthL1Config, ReconConfig, evaluate_reconstruction
 from neb_slam_core.eval.seams import seam_step_errors
 from neb_slam_core.geometry.rays import backproject_depth
-from neb_slam_core.mapping.fit import FitConfig, FrameRayPool, allocate_blocks, fit_map, render_depth_image
 from neb_slam_core.mesh import extract_mesh
-from neb_slam_core.scene.block_map import BlockMap
+from neb_slam_core.render.images import render_depth_image
+from neb_slam_core.slam import KnownPoseMapping
 from neb_slam_core.synth.generate import generate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,7 +48,9 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="default", help="synthetic preset (small, default, large, corridor)")
     p.add_argument("--iterations", type=int, default=1000)
-    p.add_argument("--rays", type=int, default=2048, help="rays per iteration")
+    p.add_argument("--rays", type=int, default=2048, help="rays per iteration from all keyframes (N_m)")
+    p.add_argument("--pixel-fraction", type=float, default=1.0,
+                   help="share of each training frame's pixels its keyframe keeps (1: all of them)")
     p.add_argument("--train-stride", type=int, default=3, help="train on every n-th frame")
     p.add_argument("--held-out", type=int, default=10, help="held-out frames to render")
     p.add_argument("--truncation", type=float, default=0.05, help="truncation distance tr (m)")
@@ -55,7 +59,6 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args()
-    torch.manual_seed(args.seed)
 
     scene = generate(args.preset, REPO / ".cache" / "scenes" / args.preset, progress=True)
     ds = open_dataset(scene)
@@ -67,14 +70,17 @@ def main() -> None:
     render = RenderConfig(truncation_m=args.truncation, sampling=SamplingConfig(far_m=6.0))
     block_cfg = BlockConfig()
     block_cfg = BlockConfig(grid=type(block_cfg.grid)(log2_hashmap_size=args.log2_table))
-    block_map = BlockMap(block_cfg, seed=args.seed)
-    allocate_blocks(block_map, train, poses, render.sampling.near_m, render.sampling.far_m, np.random.default_rng(args.seed))
+    cfg = SlamConfig(block=block_cfg, render=render, keyframes=KeyframeConfig(pixel_fraction=args.pixel_fraction),
+                     mapping=replace(MappingConfig(), n_rays=args.rays), seed=args.seed)
+    mapping = KnownPoseMapping(cfg)
+    for f in train:
+        mapping.add(f)
+    block_map = mapping.block_map
     print(f"{args.preset}: {len(frames)} frames {frames[0].intrinsics.width}x{frames[0].intrinsics.height}, "
           f"training on {len(train)}, {len(block_map)} blocks allocated")
 
     t0 = time.perf_counter()
-    history = fit_map(block_map, FrameRayPool(train, poses), render,
-                      FitConfig(iterations=args.iterations, rays_per_iteration=args.rays), seed=args.seed, progress=True)
+    history = mapping.optimise(args.iterations, progress=True)
     fit_s = time.perf_counter() - t0
 
     centres = block_map.centres().numpy().astype(np.float64)
@@ -131,7 +137,7 @@ def main() -> None:
               f"over {seam_a.size} seam pairs (elsewhere p99 {figures['other_step_p99_cm']:.2f} cm)")
     else:
         print("seam step error         no seam crossings seen in the held-out views")
-    print(f"fitting                 {1e3 * figures['fit_s_per_iteration']:.0f} ms / iteration of {args.rays} rays "
+    print(f"fitting                 {1e3 * figures['fit_s_per_iteration']:.0f} ms / iteration of {args.rays} + {cfg.mapping.n_rays_newest_block} rays "
           f"(load average {figures['load_average']:.1f})")
     record(f"map_fit-{args.preset}", figures, args.json)
 

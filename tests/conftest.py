@@ -31,35 +31,34 @@ def small_scene(tmp_path_factory) -> Path:
 
 @dataclass
 class FittedMap:
-    """A block map fitted with ground-truth poses to every other frame of the 'small' scene."""
+    """A block map fitted by the engine's mapping at the ground-truth poses of every other frame of the
+    'small' scene."""
 
     block_map: object  # neb_slam_core.scene.block_map.BlockMap
     train: list
     held_out: list
-    history: list
+    history: list  # the total loss of each mapping step
     scene: Path
     render: object  # neb_slam_core.config.RenderConfig used for fitting
 
 
 @pytest.fixture(scope="session")
 def fitted_small_map(small_scene) -> FittedMap:
-    """200 iterations of 2048 rays from random parameters (about 30 s on two cores); shared by the
-    map-fitting and the tracking tests, which must not change it."""
-    import numpy as np
-    import torch
-
-    from neb_slam_core.config import BlockConfig, RenderConfig, SamplingConfig
+    """The engine's allocation and mapping (:class:`~neb_slam_core.slam.KnownPoseMapping`) on every other
+    frame of the 'small' scene at its ground-truth pose, each a keyframe keeping all its pixels (96x72:
+    the engine's 5 % would leave 345 per frame), then 160 mapping steps of the engine's 2048 + 512 rays
+    (as many rays as 200 steps of 2048) with the poses held, from random parameters; shared by the
+    map-fitting, rendering and tracking tests, which must not change it."""
+    from neb_slam_core.config import KeyframeConfig, RenderConfig, SamplingConfig, SlamConfig
     from neb_slam_core.datasets import open_dataset
-    from neb_slam_core.mapping.fit import FitConfig, FrameRayPool, allocate_blocks, fit_map
-    from neb_slam_core.scene.block_map import BlockMap
+    from neb_slam_core.slam import KnownPoseMapping
 
     render = RenderConfig(truncation_m=0.05, sampling=SamplingConfig(far_m=5.0))
-    torch.manual_seed(0)
     ds = open_dataset(small_scene)
     frames = [ds[i] for i in range(len(ds))]
     train, held_out = frames[::2], frames[1::6]
-    poses = [f.T_world_cam for f in train]
-    block_map = BlockMap(BlockConfig(), seed=0)
-    allocate_blocks(block_map, train, poses, render.sampling.near_m, render.sampling.far_m, np.random.default_rng(0))
-    history = fit_map(block_map, FrameRayPool(train, poses), render, FitConfig(iterations=200, rays_per_iteration=2048))
-    return FittedMap(block_map, train, held_out, history, small_scene, render)
+    mapping = KnownPoseMapping(SlamConfig(render=render, keyframes=KeyframeConfig(pixel_fraction=1.0)))
+    for f in train:
+        mapping.add(f)
+    history = mapping.optimise(160)
+    return FittedMap(mapping.block_map, train, held_out, history, small_scene, render)

@@ -406,6 +406,63 @@ class Backend:
         return pts
 
 
+class KnownPoseMapping:
+    """The engine's allocation and mapping on frames at known poses (e.g. ground truth), without tracking:
+    a map fitted to a scene by the allocation, keyframe store and mapper a run uses (tests and
+    benchmarks of the map alone).
+
+    :meth:`add` runs a frame through what a run does with a keyframe once it has its pose: rectify it,
+    allocate by the frontend's rule (:meth:`Frontend._allocate`, the paper's tau test), store it in the
+    backend (:meth:`Backend.add_keyframe`: its kept pixels, its blocks). :meth:`optimise` takes the
+    backend mapper's steps over all keyframes with the poses held (:meth:`Mapper.optimise` with
+    ``optimise_poses=False``: N_m rays from all keyframes plus N_a from the newest block's).
+    """
+
+    def __init__(self, cfg: SlamConfig, block_map: BlockMap | None = None):
+        self.cfg = cfg
+        torch.manual_seed(cfg.seed)  # as Slam does: same seed, same map
+        self.block_map = new_block_map(cfg) if block_map is None else block_map
+        self.frontend = Frontend(cfg, self.block_map)
+        self.backend = Backend(cfg, self.block_map)
+
+    @property
+    def keyframes(self) -> KeyframeStore:
+        return self.backend.keyframes
+
+    def allocate(self, frame: RgbdFrame, T_world_cam: np.ndarray | None = None) -> int | None:
+        """Allocate by the frontend's rule on ``frame`` at ``T_world_cam`` (the frame's own pose when None),
+        without keeping the frame; returns the id of the block it added, or None."""
+        frame = self.frontend._rectify(frame)
+        block, _ = self.frontend._allocate(frame, self._pose(frame, T_world_cam))
+        return None if block is None else block.block_id
+
+    def add(self, frame: RgbdFrame, T_world_cam: np.ndarray | None = None) -> Keyframe:
+        """Allocate on ``frame`` at ``T_world_cam`` (the frame's own pose when None), then store it as a
+        keyframe, assigned to its blocks; no mapping step. Its ``frame_index`` is its place among the
+        frames added."""
+        frame = self.frontend._rectify(frame)
+        T = self._pose(frame, T_world_cam)
+        self.frontend._allocate(frame, T)
+        return self.backend.add_keyframe(frame, T, len(self.keyframes), map_now=False).keyframe
+
+    def optimise(self, iterations: int, progress: bool = False) -> list[float]:
+        """``iterations`` mapping steps over all keyframes, poses held; returns each step's total loss.
+        One mapper call per step: the same steps and draws as a single call of ``iterations``."""
+        steps = range(iterations)
+        if progress:
+            from tqdm import tqdm
+
+            steps = tqdm(steps, desc="fit map", unit="it")
+        return [self.backend.mapper.optimise(1, optimise_poses=False).loss for _ in steps]
+
+    @staticmethod
+    def _pose(frame: RgbdFrame, T_world_cam: np.ndarray | None) -> np.ndarray:
+        T = frame.T_world_cam if T_world_cam is None else T_world_cam
+        if T is None:
+            raise ValueError(f"frame {frame.index} has no pose: pass T_world_cam")
+        return np.array(T, dtype=np.float64)
+
+
 class Slam:
     """NeB-SLAM engine for one RGB-D stream: a frontend and a backend on one block map."""
 

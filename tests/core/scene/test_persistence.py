@@ -7,7 +7,7 @@ import torch
 
 from neb_slam_core.config import BlockConfig, HashGridConfig, RenderConfig
 from neb_slam_core.errors import DatasetError
-from neb_slam_core.mapping.fit import render_depth_image
+from neb_slam_core.render.images import render_depth_image
 from neb_slam_core.scene.block_map import BlockMap
 from neb_slam_core.scene.persistence import load_map, save_map
 from neb_slam_core.types import Intrinsics, RgbdFrame
@@ -18,7 +18,7 @@ GRID = HashGridConfig(n_levels=4, n_features_per_level=2, log2_hashmap_size=12, 
 RENDER_SNIPPET = """
 import sys, numpy as np, torch
 from neb_slam_core.config import RenderConfig
-from neb_slam_core.mapping.fit import render_depth_image
+from neb_slam_core.render.images import render_depth_image
 from neb_slam_core.scene.persistence import load_map
 from neb_slam_core.types import Intrinsics, RgbdFrame
 torch.set_num_threads(int(sys.argv[3]))  # the parent's count: same summation order, same bits

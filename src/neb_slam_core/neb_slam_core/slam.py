@@ -141,6 +141,16 @@ def corrected_trajectory(stamps_ns: np.ndarray, poses: np.ndarray, keyframe_stam
     return Trajectory(stamps, out)
 
 
+def scale_motion(delta: np.ndarray, scale: float) -> np.ndarray:
+    """``delta^scale`` of a rigid motion (4x4) on SE(3)'s one-parameter subgroup: the screw motion
+    ``exp(scale * log(delta))`` (``scale`` 1: ``delta``, 0: identity, 2: ``delta @ delta``)."""
+    from scipy.linalg import expm, logm
+
+    if scale == 1.0:
+        return np.array(delta, dtype=np.float64)
+    return np.real(expm(scale * np.real(logm(np.asarray(delta, dtype=np.float64)))))
+
+
 @dataclass
 class _FramePose:
     """A processed frame's pose: relative to keyframe ``keyframe_id`` (``T_kf_cam``)."""
@@ -189,6 +199,7 @@ class Frontend:
         self._frames: list[_FramePose] = []
         self._residuals: list[float] = []
         self._ok_streak = 0  # consecutive frames tracked (the first frame counts)
+        self._tracked: list[int] = []  # the last two frames that were tracked (not failed), oldest first
         self._rectify = Rectifier()
 
     # ------------------------------------------------------------------ poses
@@ -223,9 +234,18 @@ class Frontend:
         return Trajectory(np.array([f.stamp_ns for f in self._frames]), poses)
 
     def set_keyframe_poses(self, poses: np.ndarray) -> None:
-        """Corrected poses ``(K, 4, 4)`` of the first K keyframes (from mapping or loop closure)."""
-        for k, T in enumerate(np.asarray(poses, dtype=np.float64)):
+        """Corrected poses ``(K, 4, 4)`` of the first K keyframes (from mapping or loop closure). Keyframes
+        after them (made since the corrections were computed: another thread or process maps) move
+        rigidly with keyframe K-1, keeping the relative poses tracking gave them."""
+        poses = np.asarray(poses, dtype=np.float64)
+        if len(poses) == 0:
+            return
+        k_last = len(poses) - 1
+        delta = poses[k_last] @ invert(self.keyframe_poses[k_last])
+        for k, T in enumerate(poses):
             self.keyframe_poses[k] = T.copy()
+        for k in range(len(poses), len(self.keyframe_poses)):
+            self.keyframe_poses[k] = orthonormalize(delta @ self.keyframe_poses[k])
 
     # ------------------------------------------------------------------ the loop
 
@@ -243,20 +263,14 @@ class Frontend:
         if index == 0 and len(self.block_map) == 0:
             return self._first(frame, t_start)
 
-        # constant velocity from the last two frames, only when both were tracked: after a failure the
-        # velocity is unknown, and extrapolating an extrapolation runs away
-        if index == 0:
-            T_pred = self.T_world_first
-        elif index >= 2 and self._ok_streak >= 2:
-            T_prev = self.pose_of(index - 1)
-            T_pred = orthonormalize(T_prev @ invert(self.pose_of(index - 2)) @ T_prev)
-        else:
-            T_pred = self.pose_of(index - 1)
+        T_pred = self.predict(frame.stamp_ns)
         t0 = time.perf_counter()
         tracked = self.tracker.track(self.block_map, frame, T_pred)
         timings.track_ms = 1e3 * (time.perf_counter() - t0)
         ok, reason = self._tracking_ok(tracked)
         self._ok_streak = self._ok_streak + 1 if ok else 0
+        if ok:
+            self._tracked = (self._tracked + [index])[-2:]
         T = tracked.T_world_cam if ok else T_pred
 
         # allocate (only from a trusted pose: a wrong one would put a block in the wrong place)
@@ -281,6 +295,32 @@ class Frontend:
                             len(self.block_map), timings)
         return FrontendStep(result, frame, keyframe_id, map_now, False)
 
+    def predict(self, stamp_ns: int) -> np.ndarray:
+        """The constant-velocity prediction of the pose of a frame stamped ``stamp_ns`` (the next one).
+
+        ``tracking.motion_model``: ``frames`` (the paper's): ``T_{t-1} T_{t-2}^-1 T_{t-1}``, only when both
+        previous frames were tracked (after a failure the velocity is unknown, and extrapolating an
+        extrapolation runs away), else the previous pose. ``stamps``: the motion between the last two
+        tracked frames, scaled to the time since the last one by their stamps (frames dropped or failed
+        in between do not matter), at most ``tracking.max_extrapolation`` times that motion.
+        """
+        index = self.n_frames
+        if index == 0:
+            return self.T_world_first
+        c = self.cfg.tracking
+        if c.motion_model == "frames":
+            if index >= 2 and self._ok_streak >= 2:
+                T_prev = self.pose_of(index - 1)
+                return orthonormalize(T_prev @ invert(self.pose_of(index - 2)) @ T_prev)
+            return self.pose_of(index - 1)
+        if len(self._tracked) < 2:
+            return self.pose_of(self._tracked[-1] if self._tracked else index - 1)
+        i2, i1 = self._tracked
+        T1, T2 = self.pose_of(i1), self.pose_of(i2)
+        dt_prev = self._frames[i1].stamp_ns - self._frames[i2].stamp_ns
+        scale = (stamp_ns - self._frames[i1].stamp_ns) / dt_prev if dt_prev > 0 else 1.0
+        return orthonormalize(T1 @ scale_motion(invert(T2) @ T1, min(max(scale, 0.0), c.max_extrapolation)))
+
     # ------------------------------------------------------------------ steps
 
     def _first(self, frame: RgbdFrame, t_start: float) -> FrontendStep:
@@ -291,6 +331,7 @@ class Frontend:
         keyframe_id = self._add_keyframe(T)
         self._record(frame.stamp_ns, T)
         self._ok_streak = 1
+        self._tracked = [0]
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
         result = StepResult(0, frame.stamp_ns, T.copy(), True, None if new_block is None else new_block.block_id,
                             tau, True, "", False, len(self.block_map), timings)
@@ -356,9 +397,10 @@ class Backend:
         self.mapper = Mapper(block_map, self.keyframes, cfg.mapping, cfg.render, seed=cfg.seed + 3)
 
     def add_keyframe(self, frame: RgbdFrame, T_world_cam: np.ndarray, frame_index: int, map_now: bool,
-                     first: bool = False) -> MappingStep:
+                     first: bool = False, first_iterations: int | None = None) -> MappingStep:
         """Store keyframe ``frame`` (rectified) at ``T_world_cam``; then initialise the map on it
-        (``first``) or run a joint optimisation step (``map_now``)."""
+        (``first``: ``first_iterations`` map-only steps on all its pixels, ``mapping.first_iterations`` when
+        None) or run a joint optimisation step (``map_now``)."""
         kf = self.keyframes.add(frame, T_world_cam, frame_index)
         self._assign_blocks(kf)
         if not (first or map_now):
@@ -367,7 +409,8 @@ class Backend:
         if first:
             rays = all_pixels(frame, device=self.block_map.device).to_world(
                 torch.as_tensor(T_world_cam, dtype=torch.float32))
-            res = self.mapper.optimise_on_rays(rays, self.cfg.mapping.first_iterations)
+            n = self.cfg.mapping.first_iterations if first_iterations is None else first_iterations
+            res = self.mapper.optimise_on_rays(rays, n)
         else:
             res = self.mapper.optimise()
         return MappingStep(kf, True, 1e3 * (time.perf_counter() - t0), res.changed_block_ids)
@@ -382,15 +425,18 @@ class Backend:
             block_ids = (share > 0.1).nonzero(as_tuple=True)[0].tolist()
         self.keyframes.assign(kf, block_ids)
 
-    def correct_loop(self, poses: np.ndarray, start_id: int) -> MappingStep:
+    def correct_loop(self, poses: np.ndarray, start_id: int, reoptimise: bool = True) -> MappingStep:
         """Apply a loop correction: keyframe poses ``(K, 4, 4)`` (those after ``start_id`` moved), then
         re-optimise in two stages, the paper's: the map with the poses fixed, then poses and map jointly
         (keyframes up to ``start_id`` held). Blocks stay where they are in the world: the moved keyframes
-        are re-assigned to the blocks their points now fall in, and re-train those."""
+        are re-assigned to the blocks their points now fall in, and re-train those. Without
+        ``reoptimise`` the caller runs the two stages itself (in chunks, between keyframes)."""
         t0 = time.perf_counter()
         self.keyframes.set_poses(poses)
         for kf in self.keyframes.keyframes[start_id + 1:]:
             self._assign_blocks(kf)
+        if not reoptimise:
+            return MappingStep(self.keyframes[len(self.keyframes) - 1], False, 1e3 * (time.perf_counter() - t0))
         c = self.cfg.loop
         first = self.mapper.optimise(c.map_iterations, optimise_poses=False)
         second = self.mapper.optimise(c.joint_iterations, optimise_poses=True, fixed_until=start_id)

@@ -27,6 +27,13 @@ Metrics: ATE / RPE when the input has ground truth; accuracy, completion and Dep
 ground-truth mesh is given with --gt-mesh or the input folder holds the mesh.ply of ``neb-slam synth``
 (both meshes culled to what the ground-truth cameras saw).
 
+Live (--live): a simulated real-time camera over the dataset. Frames arrive at their stamps (--rate
+scales the clock); the concurrent engine (``neb_slam_core.live``: mapping and loop closure in threads of
+their own) tracks the newest frame whenever it is free, and the frames that arrived meanwhile are
+dropped. The run directory then holds the tracked frames only, and metrics.json adds frames in, frames
+dropped, tracked frames per second and the mapping lag. Without --live every frame is processed in the
+deterministic order of the paper's loop.
+
 Ctrl-C stops processing; everything computed so far (trajectory of the processed frames, map, mesh,
 metrics, plots) is then written and the command exits with code 130. A second Ctrl-C aborts the
 writing. A crash inside the engine also writes what exists before the error is reported. The last
@@ -71,6 +78,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", metavar="FMT", help="dataset loader (default: detect from the layout)")
     p.add_argument("--map", type=Path, metavar="MAP_PT", help="continue this map checkpoint (a run's map.pt) "
                                                               "instead of starting from an empty map")
+    p.add_argument("--live", action="store_true", help="simulate a real-time camera: frames arrive at their "
+                                                       "stamps and the engine tracks the newest one when free")
+    p.add_argument("--rate", type=float, default=1.0, metavar="R",
+                   help="with --live: clock speed against the stamps (default 1.0, as recorded)")
     g = p.add_argument_group("mesh and reconstruction")
     g.add_argument("--no-mesh", action="store_true", help="do not extract the mesh")
     g.add_argument("--mesh-voxel", type=float, metavar="M", help="marching-cubes voxel size in metres "
@@ -153,6 +164,8 @@ def run(args: argparse.Namespace) -> int:
     if len(dataset) == 0:
         raise DatasetError(args.source, "the dataset has no frames")
     indices = select_frames(len(dataset), args.start, args.stride, args.frames)
+    if args.rate <= 0:
+        raise ConfigError(f"--rate must be > 0, got {args.rate}")
     if args.recon_points < 1 or args.depth_views < 0:
         raise ConfigError("--recon-points must be >= 1 and --depth-views >= 0")
     gt_mesh = args.gt_mesh
@@ -184,17 +197,27 @@ def run(args: argparse.Namespace) -> int:
           + ("" if block_map is None else f"continuing {args.map} ({len(block_map)} blocks), ")
           + f"writing to {run_dir.path}", file=sys.stderr)
 
-    slam = Slam(cfg, T_world_first, block_map)
     _ext.prepare(cfg.grid_backend)  # a first-use compile of the C++ kernels is not the first frame's time
+    if args.live:
+        from ..live import LiveSlam
+
+        slam = LiveSlam(cfg, T_world_first, block_map)
+    else:
+        slam = Slam(cfg, T_world_first, block_map)
     run_log = RunLog()
     t_start = time.perf_counter()
     try:
-        status = _process(slam, dataset, indices, first, run_log)
+        if args.live:
+            status, live_metrics = _process_live(slam, dataset, indices, first, run_log, args.rate)
+        else:
+            status, live_metrics = _process(slam, dataset, indices, first, run_log), {}
     except Exception as exc:
         wall_s = time.perf_counter() - t_start
         log.error("the run failed (%s: %s); writing the %d frames processed so far to %s",
                   type(exc).__name__, exc, slam.n_frames, run_dir.path)
         try:
+            if args.live:
+                slam.close(timeout_s=60.0)
             write_run(run_dir, slam, run_log, options, "crashed", wall_s)
         except KeyboardInterrupt:
             log.error("writing aborted by Ctrl-C: %s is incomplete", run_dir.path)
@@ -208,6 +231,9 @@ def run(args: argparse.Namespace) -> int:
               f"(Ctrl-C again to abort)", file=sys.stderr)
     try:
         summary = write_run(run_dir, slam, run_log, options, status, wall_s)
+        if live_metrics:
+            summary.metrics.update(live_metrics)
+            run_dir.write_metrics(summary.metrics)
     except KeyboardInterrupt:
         print(f"writing aborted: {run_dir.path} is incomplete", file=sys.stderr)
         return 130
@@ -235,6 +261,41 @@ def _process(slam, dataset, indices: range, first, run_log) -> str:
         except KeyboardInterrupt:
             return "interrupted"
     return "complete"
+
+
+def _process_live(slam, dataset, indices: range, first, run_log, rate: float) -> tuple[str, dict]:
+    """The simulated real-time camera of ``--live`` (module docstring): returns the status and the live
+    figures for metrics.json. The engine is closed (its queued keyframes integrated) before it returns."""
+    import numpy as np
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    stamps = np.asarray(dataset.stamps_ns, dtype=np.int64)[np.asarray(indices)]
+    arrival_s = (stamps - stamps[0]) * 1e-9 / rate  # when each frame reaches the engine, from the start
+    status, n_dropped, k = "complete", 0, 0
+    t0 = time.perf_counter()
+    with logging_redirect_tqdm(), tqdm(total=len(indices), desc="live", unit="frame", dynamic_ncols=True) as bar:
+        try:
+            while k < len(indices):
+                slam.wait_for_map()
+                now = time.perf_counter() - t0
+                newest = int(np.searchsorted(arrival_s, now, side="right")) - 1
+                if newest < k:  # the next frame has not arrived yet
+                    time.sleep(arrival_s[k] - now)
+                    continue
+                n_dropped += newest - k
+                frame = first if newest == 0 else dataset[indices[newest]]
+                run_log.begin(frame)
+                result = slam.process(frame)
+                run_log.end(result)
+                bar.update(newest + 1 - k)
+                k = newest + 1
+                bar.set_postfix(tracked=slam.n_frames, dropped=n_dropped, lag=slam.stats.mapping_lag, refresh=False)
+        except KeyboardInterrupt:
+            status = "interrupted"
+    span_s = time.perf_counter() - t0
+    slam.close()
+    return status, {"rate": rate, **slam.live_metrics(k, n_dropped, span_s)}
 
 
 def _print_summary(summary) -> None:

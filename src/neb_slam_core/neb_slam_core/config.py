@@ -370,12 +370,16 @@ class LiveConfig:
     (that rest, a loop correction's re-optimisation) runs in chunks of this many steps between
     keyframes. ``torch_threads``: torch's intra-op threads of each thread that runs the engine (0: torch's
     default; the ``live`` preset sets 1, so that on two cores the tracker and the mapper each keep one
-    busy instead of competing for both); the ROS nodes apply it too.
+    busy instead of competing for both); the ROS nodes apply it too. ``max_gap_s``: the engine tracks
+    the newest frame that arrived, but none more than this after the last tracked frame (0: the newest,
+    however far): a frame far ahead of the last pose lies outside the tracker's basin, so after a wait
+    (the first map) the engine catches up in steps instead of jumping.
     """
 
     first_iterations: int = 30
     chunk_iterations: int = 10
     torch_threads: int = 0
+    max_gap_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -460,6 +460,7 @@ RULES: dict[str, Any] = {
     "live.first_iterations": _POSITIVE_INT,
     "live.chunk_iterations": _POSITIVE_INT,
     "live.torch_threads": _COUNT,
+    "live.max_gap_s": _NON_NEGATIVE,
 }
 
 

@@ -202,6 +202,20 @@ class LiveSlam:
             self._cond.wait_for(lambda: self._version > 0 or self._stopping or self.errors)
         self.stats.first_map_wait_s += time.perf_counter() - t0
 
+    def next_frame(self, stamps_ns) -> int:
+        """Which of the arrived frames (``stamps_ns``) to track next: :meth:`Frontend.next_frame`."""
+        return self.frontend.next_frame(stamps_ns)
+
+    def wait_integrated(self, timeout_s: float | None = None) -> bool:
+        """Wait until the mapper has integrated every keyframe handed to it and applied every loop
+        correction that came (background refinement may go on); False on timeout or a failed thread.
+        Not for a live camera: it makes the caller as slow as mapping (tests, replays that want it)."""
+        with self._cond:
+            done = self._cond.wait_for(
+                lambda: self.errors or (not self._to_mapper and not self._corrections and not self._to_loop
+                                        and self._integrated == len(self.frontend.keyframe_poses)), timeout_s)
+        return bool(done) and not self.errors
+
     def _apply_updates(self) -> None:
         with self._cond:
             updates, self._updates = self._updates, []

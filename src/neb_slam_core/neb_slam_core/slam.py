@@ -151,6 +151,27 @@ def scale_motion(delta: np.ndarray, scale: float) -> np.ndarray:
     return np.real(expm(scale * np.real(logm(np.asarray(delta, dtype=np.float64)))))
 
 
+def choose_frame(stamps_ns, last_tracked_ns: int | None, max_gap_s: float, has_velocity: bool = True) -> int:
+    """The index of the frame to track next among ``stamps_ns`` (arrived, not tracked yet, oldest first).
+
+    The newest, but none more than ``max_gap_s`` after the last tracked frame (the oldest when all are
+    further): a frame far ahead of the last pose lies outside the tracker's basin, so an engine that fell
+    behind catches up in steps of at most that. Without a velocity (``has_velocity`` False: one frame
+    tracked, or a failure since) the prediction is the last pose itself, so the oldest frame is taken.
+    ``max_gap_s`` 0 or nothing tracked yet: the newest.
+    """
+    n = len(stamps_ns)
+    if n == 0:
+        raise ValueError("choose_frame: no frame to choose from")
+    gap_ns = int(round(max_gap_s * 1e9))
+    if gap_ns <= 0 or last_tracked_ns is None:
+        return n - 1
+    if not has_velocity:
+        return 0
+    within = int(np.searchsorted(np.asarray(stamps_ns, dtype=np.int64), last_tracked_ns + gap_ns, side="right"))
+    return max(within - 1, 0)
+
+
 @dataclass
 class _FramePose:
     """A processed frame's pose: relative to keyframe ``keyframe_id`` (``T_kf_cam``)."""
@@ -294,6 +315,16 @@ class Frontend:
                             None if new_block is None else new_block.block_id, tau, ok, reason, False,
                             len(self.block_map), timings)
         return FrontendStep(result, frame, keyframe_id, map_now, False)
+
+    @property
+    def last_tracked_stamp_ns(self) -> int | None:
+        """The stamp of the last frame tracked (not failed), None before the first."""
+        return self._frames[self._tracked[-1]].stamp_ns if self._tracked else None
+
+    def next_frame(self, stamps_ns) -> int:
+        """For an engine that cannot take every frame: which of the frames that arrived and are not tracked
+        yet (``stamps_ns``, oldest first) to track next (:func:`choose_frame` with ``live.max_gap_s``)."""
+        return choose_frame(stamps_ns, self.last_tracked_stamp_ns, self.cfg.live.max_gap_s, self._ok_streak >= 2)
 
     def predict(self, stamp_ns: int) -> np.ndarray:
         """The constant-velocity prediction of the pose of a frame stamped ``stamp_ns`` (the next one).

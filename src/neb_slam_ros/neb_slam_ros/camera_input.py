@@ -34,7 +34,7 @@ class InputOptions:
     depth_scale: float = 0.001
     sync_slop_s: float = 0.02
     reliable_inputs: bool = False
-    frame_queue: int = 4
+    frame_queue: int = 30
     ground_truth_topic: str = ""
     warn_period_s: float = 5.0
 
@@ -42,7 +42,8 @@ class InputOptions:
         "depth_scale": "metres per unit of 16UC1/mono16 depth images (32FC1 is metres)",
         "sync_slop_s": "colour and depth are paired by stamp: exact, or nearest within this",
         "reliable_inputs": "camera subscriptions reliable (lossless replay) instead of sensor-data QoS",
-        "frame_queue": "frames kept while the engine is busy (older ones are dropped, with a warning)",
+        "frame_queue": "frames kept while the engine is busy (older ones are dropped, with a warning); a live "
+                       "engine catching up after a wait tracks from these (live.max_gap_s)",
         "ground_truth_topic": "PoseStamped topic with the camera's ground truth (e.g. ground_truth/pose): the "
                               "first frame starts from its pose; empty: from the identity",
         "warn_period_s": "throttle of repeated input warnings",
@@ -138,13 +139,26 @@ class CameraInput:
 
     def pop_newest(self) -> RgbdFrame | None:
         """The newest queued frame, or None; the older ones are dropped and counted (call with the
-        condition held). A live engine takes the newest frame whenever it is free."""
+        condition held)."""
+        return self.pop_chosen(lambda stamps: len(stamps) - 1)
+
+    def pop_chosen(self, choose: Callable[[list[int]], int]) -> RgbdFrame | None:
+        """The queued frame ``choose`` picks from the queued frames' stamps (oldest first; it returns an
+        index), or None when none is queued; the older ones are dropped and counted, the newer stay
+        queued (call with the condition held). A live engine picks with ``LiveSlam.next_frame``."""
         if not self._queue:
             return None
-        frame = self._queue.pop()
-        self.n_dropped += len(self._queue)
-        self._queue.clear()
-        return frame
+        i = choose([f.stamp_ns for f in self._queue])
+        if not 0 <= i < len(self._queue):
+            raise IndexError(f"pop_chosen: index {i} outside the {len(self._queue)} queued frames")
+        for _ in range(i):
+            self._queue.popleft()
+        self.n_dropped += i
+        return self._queue.popleft()
+
+    def push_front(self, frame: RgbdFrame) -> None:
+        """Queue ``frame`` again as the oldest (a frame taken, then not processed yet; condition held)."""
+        self._queue.appendleft(frame)
 
     # ------------------------------------------------------------------ callbacks (executor thread)
 

@@ -103,18 +103,21 @@ class SlamNode(NebNode):
         return self.input.has_frame
 
     def take_work(self) -> RgbdFrame | None:
-        return self.input.pop_newest() if self.live else self.input.pop()
+        if not self.live:
+            return self.input.pop()
+        if self.slam is None:
+            return self.input.pop_newest()
+        return self.input.pop_chosen(self.slam.next_frame)
 
     def do_work(self, frame: RgbdFrame | None) -> None:
         if frame is None:
             return
         if self.live and self.slam is not None and self.slam.n_frames == 1:
-            self.slam.wait_for_map()  # the only wait of a live engine: then the newest frame, not this one
+            # the only wait of a live engine, for the first map; then the frame it picks from what arrived
+            self.slam.wait_for_map()
             with self.cond:
-                newer = self.input.pop_newest()
-            if newer is not None:
-                self.input.n_dropped += 1
-                frame = newer
+                self.input.push_front(frame)
+                frame = self.input.pop_chosen(self.slam.next_frame)
         try:
             self._process(frame)
         except Exception as exc:  # a frame must never kill the node
@@ -154,6 +157,11 @@ class SlamNode(NebNode):
         if self.slam is None or self.slam.n_frames == 0:
             self.final_log("neb_slam slam stopped before any frame: nothing to write", "WARN")
             return
+        if self.live:
+            # the end of the input: one more frame, the one the engine would have taken next
+            with self.cond:
+                last = self.input.pop_chosen(self.slam.next_frame)
+            self.do_work(last)
         with self.cond:
             self.input.drop_queued()  # arrived after the last frame the engine took
         if self.live:
@@ -165,10 +173,13 @@ class SlamNode(NebNode):
         options = RunOutputOptions(mesh_cfg=self.cfg.mesh, first_pose_from_gt=first_gt, progress=False)
         wall_s = time.perf_counter() - (self._t_first or time.perf_counter())
         summary = write_run(run_dir, self.slam, self.run_log, options, "complete", wall_s)
-        summary.metrics["frames_in"] = self.input.n_accepted
-        summary.metrics["frames_dropped"] = self.input.n_dropped
+        # every frame that reached the node and got no pose (superseded, queued at the end, or failed in the
+        # engine) counts as dropped
+        frames_in = self.input.n_accepted
+        summary.metrics["frames_in"] = frames_in
+        summary.metrics["frames_dropped"] = frames_in - self.slam.n_frames
         if self.live:
-            summary.metrics.update(self.slam.live_metrics(self.input.n_accepted, self.input.n_dropped,
+            summary.metrics.update(self.slam.live_metrics(frames_in, frames_in - self.slam.n_frames,
                                                           self._t_last - self._t_first))
         run_dir.write_metrics(summary.metrics)
         if summary.mesh is not None:  # the final mesh, also to the topic's subscribers
@@ -176,7 +187,7 @@ class SlamNode(NebNode):
         m = summary.metrics
         ate = f", ATE {m['ate_rmse_cm']:.3f} cm" if "ate_rmse_cm" in m else ""
         self.final_log(f"neb_slam slam stopped: {self.slam.n_frames} frames, {m.get('n_blocks')} blocks, "
-                       f"{m.get('s_per_frame') or 0:.3f} s per frame{ate}, {self.input.n_dropped} dropped, "
+                       f"{m.get('s_per_frame') or 0:.3f} s per frame{ate}, {m['frames_dropped']} dropped, "
                        f"{self.input.warnings.total} input warnings; run directory {self.out}")
 
 

@@ -138,8 +138,13 @@ class TrackerNode(NebNode):
         self._updates.clear()
         if self._waiting_for_map():
             return updates, None
-        # in sync with the mapper every frame is tracked in order; otherwise the newest one
-        return updates, self.input.pop() if self.opt.map_sync else self.input.pop_newest()
+        # in sync with the mapper every frame is tracked in order; otherwise the newest one (within
+        # live.max_gap_s of the last tracked frame)
+        if self.opt.map_sync:
+            return updates, self.input.pop()
+        if self.frontend is None:
+            return updates, self.input.pop_newest()
+        return updates, self.input.pop_chosen(self.frontend.next_frame)
 
     def do_work(self, work: tuple[list, RgbdFrame | None]) -> None:
         updates, frame = work

@@ -29,10 +29,10 @@ ground-truth mesh is given with --gt-mesh or the input folder holds the mesh.ply
 
 Live (--live): a simulated real-time camera over the dataset. Frames arrive at their stamps (--rate
 scales the clock); the concurrent engine (``neb_slam_core.live``: mapping and loop closure in threads of
-their own) tracks the newest frame whenever it is free, and the frames that arrived meanwhile are
-dropped. The run directory then holds the tracked frames only, and metrics.json adds frames in, frames
-dropped, tracked frames per second and the mapping lag. Without --live every frame is processed in the
-deterministic order of the paper's loop.
+their own) tracks the newest frame whenever it is free (at most ``live.max_gap_s`` after the last
+tracked one), and the frames before it are dropped. The run directory then holds the tracked frames
+only, and metrics.json adds frames in, frames dropped, tracked frames per second and the mapping lag.
+Without --live every frame is processed in the deterministic order of the paper's loop.
 
 Ctrl-C stops processing; everything computed so far (trajectory of the processed frames, map, mesh,
 metrics, plots) is then written and the command exits with code 130. A second Ctrl-C aborts the
@@ -283,13 +283,14 @@ def _process_live(slam, dataset, indices: range, first, run_log, rate: float) ->
                 if newest < k:  # the next frame has not arrived yet
                     time.sleep(arrival_s[k] - now)
                     continue
-                n_dropped += newest - k
-                frame = first if newest == 0 else dataset[indices[newest]]
+                chosen = k + slam.next_frame(stamps[k:newest + 1])
+                n_dropped += chosen - k
+                frame = first if chosen == 0 else dataset[indices[chosen]]
                 run_log.begin(frame)
                 result = slam.process(frame)
                 run_log.end(result)
-                bar.update(newest + 1 - k)
-                k = newest + 1
+                bar.update(chosen + 1 - k)
+                k = chosen + 1
                 bar.set_postfix(tracked=slam.n_frames, dropped=n_dropped, lag=slam.stats.mapping_lag, refresh=False)
         except KeyboardInterrupt:
             status = "interrupted"

@@ -1,0 +1,74 @@
+"""The camera input's frame queue as the live engine uses it: which frames a choice keeps, drops and
+counts, and the bound that drops the oldest. The queue is exercised directly (``_enqueue`` is what the
+image callbacks call), on a stand-in node that only records the subscriptions."""
+
+from __future__ import annotations
+
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.ros
+
+
+class _Node:
+    def __init__(self):
+        self.warned: list[str] = []
+
+    def get_logger(self):
+        return SimpleNamespace(warning=self.warned.append, info=lambda *_: None)
+
+    def get_name(self):
+        return "test"
+
+    def resolve_topic_name(self, name):
+        return "/" + name
+
+    def create_subscription(self, *args, **kwargs):
+        return None
+
+
+def _input(frame_queue: int = 30):
+    from neb_slam_ros.camera_input import CameraInput, InputOptions
+
+    return CameraInput(_Node(), InputOptions(frame_queue=frame_queue, warn_period_s=0.0), threading.Condition())
+
+
+def _frame(stamp_ns: int):
+    from neb_slam_core.types import Intrinsics, RgbdFrame
+
+    cam = Intrinsics(fx=2.0, fy=2.0, cx=2.0, cy=1.5, width=4, height=3)
+    return RgbdFrame(np.zeros((3, 4, 3), np.uint8), np.ones((3, 4), np.float32), cam, stamp_ns)
+
+
+def test_pop_chosen_drops_the_older_frames_and_keeps_the_newer():
+    inp = _input()
+    for s in (10, 20, 30, 40):
+        inp._enqueue(_frame(s))
+    seen = []
+
+    def choose(stamps):
+        seen.append(list(stamps))
+        return 1
+
+    frame = inp.pop_chosen(choose)
+    assert frame.stamp_ns == 20 and seen == [[10, 20, 30, 40]]
+    assert inp.n_dropped == 1  # the frame of stamp 10
+    assert [f.stamp_ns for f in inp._queue] == [30, 40]  # newer frames stay for the next choice
+    inp.push_front(frame)
+    assert inp.pop_newest().stamp_ns == 40 and inp.n_dropped == 3 and not inp.has_frame
+    assert inp.pop_chosen(choose) is None and len(seen) == 1  # nothing queued: not asked
+    inp._enqueue(_frame(50))
+    with pytest.raises(IndexError, match="outside the 1 queued"):
+        inp.pop_chosen(lambda stamps: 1)
+
+
+def test_a_full_queue_drops_its_oldest_frame_with_a_warning():
+    inp = _input(frame_queue=2)
+    for s in (10, 20, 30):
+        inp._enqueue(_frame(s))
+    assert [f.stamp_ns for f in inp._queue] == [20, 30] and inp.n_dropped == 1
+    assert inp.node.warned and "behind the input" in inp.node.warned[0]
+    assert inp.drop_queued() == 2 and inp.n_dropped == 3

@@ -5,15 +5,7 @@ import torch
 
 from neb_slam_core.config import DecoderConfig
 from neb_slam_core.errors import ConfigError
-from neb_slam_core.scene import hash_grid as hg
 from neb_slam_core.scene.decoders import Decoders
-
-
-@pytest.fixture(scope="module")
-def fast_ext():
-    reason = hg.fast_path_unavailable_reason()
-    if reason is not None:
-        pytest.fail(f"the C++ extension did not build: {reason}")
 
 
 def _pair(n_blob: int, n_grid: int, cfg: DecoderConfig, dtype=torch.float32, seed: int = 0):

@@ -1,16 +1,15 @@
 """Multi-resolution hash encoding: layout and parameter counts, hand-worked lookups, the fast C++ path
 against the plain-torch reference, gradcheck on both, gradient skipping, and the build-failure fallback.
 
-The C++ extension is compiled at most once per process (and cached on disk across runs); every test that
-needs it goes through the ``fast_ext`` fixture, which fails (not skips) when the build fails: the fast path
-is part of the product.
+The C++ kernels are built at install (test_map_kernels.py checks the binding and the loading); every test
+that needs them goes through the ``fast_ext`` fixture (conftest.py), which fails (not skips) when they are
+unavailable: the fast path is part of the product.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from pathlib import Path
 
 import pytest
 import torch
@@ -24,14 +23,6 @@ from neb_slam_core.scene.hash_grid import HashGrid, HashGridMeta, encode_referen
 
 PAPER = HashGridConfig()  # L=16, F=2, T=2^15, R 16..250
 SMALL_VARIANT = HashGridConfig(log2_hashmap_size=14)
-
-
-@pytest.fixture(scope="module")
-def fast_ext():
-    reason = hg.fast_path_unavailable_reason()
-    if reason is not None:
-        pytest.fail(f"the hash-grid C++ extension did not build: {reason}")
-    return _ext.load_hash_grid_ext()
 
 
 def _grid(cfg: HashGridConfig, backend: str, seed: int = 0, scale: float = 1.0, dtype=torch.float32) -> HashGrid:
@@ -295,12 +286,15 @@ class _RecordingExt:
         self._ext = ext
         self.calls: list[tuple[bool, bool]] = []
 
-    def forward(self, *args):
-        return self._ext.forward(*args)
+    def hash_grid_forward(self, *args):
+        return self._ext.hash_grid_forward(*args)
 
-    def backward(self, dtype, F, grad_out, x, table, grad_x, grad_table, *rest):
-        self.calls.append((grad_x != 0, grad_table != 0))
-        return self._ext.backward(dtype, F, grad_out, x, table, grad_x, grad_table, *rest)
+    def hash_grid_backward(self, *args):
+        need_x, need_table = args[-2:]
+        grads = self._ext.hash_grid_backward(*args)
+        assert (grads[0] is not None, grads[1] is not None) == (need_x, need_table)
+        self.calls.append((need_x, need_table))
+        return grads
 
 
 def test_backward_computes_only_the_gradients_needed(fast_ext, monkeypatch):
@@ -409,29 +403,3 @@ def test_resolutions_follow_the_paper_formula():
     assert hg.resolutions_per_level(2, 32, 5) == (2, 4, 8, 16, 32)
     b = math.exp((math.log(512) - math.log(16)) / 7)
     assert hg.resolutions_per_level(16, 512, 8) == tuple(math.floor(16 * b**l + 1e-9) for l in range(8))
-
-
-def test_a_build_lock_left_by_a_killed_process_is_cleared(tmp_path, monkeypatch, caplog):
-    """torch's loader waits forever while its ``lock`` file exists; one left by a process killed during a
-    load is removed (under our OS lock no live loader can own it), with a warning naming it."""
-    import logging
-
-    from torch.utils import cpp_extension
-
-    monkeypatch.setenv("NEB_SLAM_EXT_DIR", str(tmp_path))
-    monkeypatch.setattr(_ext, "_module", None)
-    monkeypatch.setattr(_ext, "_failure", None)
-    build_dir = tmp_path / f"neb_hash_grid_{_ext.build_key(_ext.compile_flags())}"
-    build_dir.mkdir()
-    (build_dir / "lock").touch()
-    seen = []
-
-    def fake_load(**kwargs):
-        seen.append((Path(kwargs["build_directory"]) / "lock").exists())
-        return "the module"
-
-    monkeypatch.setattr(cpp_extension, "load", fake_load)
-    with caplog.at_level(logging.WARNING, logger=_ext.__name__):
-        assert _ext.load_hash_grid_ext() == "the module"
-    assert seen == [False]
-    assert "left by a process killed" in caplog.text and str(build_dir / "lock") in caplog.text

@@ -5,7 +5,6 @@ import torch
 
 from neb_slam_core.config import OneBlobConfig
 from neb_slam_core.errors import ConfigError
-from neb_slam_core.scene import hash_grid as hg
 from neb_slam_core.scene.one_blob import OneBlob
 
 
@@ -41,13 +40,6 @@ def test_smooth_and_differentiable_in_points():
 
 
 # ---------------------------------------------------------------------------------------------- fast path
-
-
-@pytest.fixture(scope="module")
-def fast_ext():
-    reason = hg.fast_path_unavailable_reason()
-    if reason is not None:
-        pytest.fail(f"the C++ extension did not build: {reason}")
 
 
 def _points(n: int, dtype, seed: int = 0) -> torch.Tensor:

@@ -22,7 +22,7 @@ from torch import nn
 from ..config import DecoderConfig
 from ..errors import ConfigError
 from . import _ext
-from .hash_grid import BACKENDS, DTYPE_CODES
+from .hash_grid import BACKENDS, FAST_DTYPES
 
 
 def _mlp(n_in: int, n_hidden: int, n_out: int) -> nn.Sequential:
@@ -41,7 +41,7 @@ class Decoders(nn.Module):
     """Geometry and colour MLPs shared by all blocks.
 
     backend: ``"auto"`` (the C++ forward when no gradient is wanted and the inputs are CPU float tensors
-        of the weights' dtype, when the extension builds), ``"fast"`` (the same, an error when it cannot
+        of the weights' dtype, when the C++ kernels load), ``"fast"`` (the same, an error when it cannot
         run) or ``"reference"`` (torch only), as :class:`~.hash_grid.HashGrid`'s.
     """
 
@@ -122,16 +122,16 @@ class Decoders(nn.Module):
         return self.geometry[2](_first_layer(self.geometry[0], blob, grid_features))
 
     def _weights(self) -> list[torch.Tensor]:
-        return [t.detach() for layer in (self.geometry[0], self.geometry[2], self.colour[0], self.colour[2])
-                for t in (layer.weight, layer.bias)]
+        return [t.detach().contiguous() for layer in (self.geometry[0], self.geometry[2], self.colour[0],
+                                                      self.colour[2]) for t in (layer.weight, layer.bias)]
 
     def uses_fast_path(self, blob: torch.Tensor, grid_features: torch.Tensor) -> bool:
         """Whether a call on these inputs runs the C++ forward: no gradient wanted, CPU, the weights' float
-        dtype, 2-D inputs (may build the extension)."""
+        dtype, 2-D inputs (may load the kernels)."""
         if torch.is_grad_enabled():
             return False
         dtype = self.geometry[0].weight.dtype
-        eligible = (dtype in DTYPE_CODES and blob.dtype == grid_features.dtype == dtype
+        eligible = (dtype in FAST_DTYPES and blob.dtype == grid_features.dtype == dtype
                     and blob.device.type == grid_features.device.type == self.geometry[0].weight.device.type == "cpu"
                     and blob.dim() == grid_features.dim() == 2)
         return _ext.use_fast_path(self.backend, eligible, "Decoders",
@@ -141,18 +141,9 @@ class Decoders(nn.Module):
     def _fast_tangents(self, blob: torch.Tensor, grid_features: torch.Tensor, blob_slopes: torch.Tensor,
                        d_features: torch.Tensor) -> tuple[torch.Tensor, ...]:
         self._check_inputs(blob, grid_features)
-        blob, feats = blob.contiguous(), grid_features.contiguous()
-        slopes, d_feats = blob_slopes.to(blob.dtype).contiguous(), d_features.to(blob.dtype).contiguous()
-        n = blob.shape[0]
-        weights = [t.contiguous() for t in self._weights()]
-        sdf, rgb = blob.new_empty(n), blob.new_empty(n, 3)
-        d_sdf, d_rgb = blob.new_empty(n, 3), blob.new_empty(n, 3, 3)
-        _ext.load_hash_grid_ext().decoder_forward_tangents(
-            DTYPE_CODES[blob.dtype], blob.data_ptr(), feats.data_ptr(), slopes.data_ptr(), d_feats.data_ptr(), n,
-            blob.shape[1], feats.shape[1], [t.data_ptr() for t in weights], self.cfg.hidden_dim,
-            1 + self.cfg.feature_dim, 3, sdf.data_ptr(), rgb.data_ptr(), d_sdf.data_ptr(), d_rgb.data_ptr(),
-            torch.get_num_threads())
-        return sdf, rgb, d_sdf, d_rgb
+        return tuple(_ext.load_map_kernels().decoder_forward_tangents(
+            blob.contiguous(), grid_features.contiguous(), blob_slopes.to(blob.dtype).contiguous(),
+            d_features.to(blob.dtype).contiguous(), self._weights()))
 
     def _check_inputs(self, blob: torch.Tensor, feats: torch.Tensor) -> None:
         if (blob.shape[1] + feats.shape[1] != self.geometry[0].in_features or feats.shape[0] != blob.shape[0]
@@ -164,13 +155,5 @@ class Decoders(nn.Module):
     def _fast(self, blob: torch.Tensor, grid_features: torch.Tensor,
               with_colour: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
         self._check_inputs(blob, grid_features)
-        blob, feats = blob.contiguous(), grid_features.contiguous()
-        n = blob.shape[0]
-        weights = [t.contiguous() for t in self._weights()]
-        sdf = blob.new_empty(n)
-        rgb = blob.new_empty(n, 3) if with_colour else None
-        _ext.load_hash_grid_ext().decoder_forward(
-            DTYPE_CODES[blob.dtype], blob.data_ptr(), feats.data_ptr(), n, blob.shape[1], feats.shape[1],
-            [t.data_ptr() for t in weights], self.cfg.hidden_dim, 1 + self.cfg.feature_dim, 3,
-            sdf.data_ptr(), 0 if rgb is None else rgb.data_ptr(), torch.get_num_threads())
-        return sdf, rgb
+        return _ext.load_map_kernels().decoder_forward(blob.contiguous(), grid_features.contiguous(),
+                                                       self._weights(), with_colour)

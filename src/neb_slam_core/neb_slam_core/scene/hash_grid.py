@@ -19,12 +19,12 @@ corner), so the dense table never needs row ``R + 1``. A NaN coordinate gives Na
 Two interchangeable implementations:
 
 - :func:`encode_reference`: plain torch, any device and float dtype, differentiated by autograd;
-- the fast CPU path: a C++/OpenMP extension (``csrc/hash_grid.cpp``, compiled on first use, see
-  :mod:`._ext`) with a hand-written backward that computes only the gradients that are needed: the table
-  gradient for mapping, the point gradient for tracking (float32 for speed, float64 for gradcheck).
+- the fast CPU path: C++/OpenMP kernels (``csrc/hash_grid_kernels.h`` in the module of :mod:`._ext`,
+  built at install) with a hand-written backward that computes only the gradients that are needed: the
+  table gradient for mapping, the point gradient for tracking (float32 for speed, float64 for gradcheck).
 
-:class:`HashGrid` picks between them (``backend="auto"``: fast for CPU float tensors when the extension
-builds, the reference otherwise, with one warning per process when the build failed).
+:class:`HashGrid` picks between them (``backend="auto"``: fast for CPU float tensors when the kernels
+load, the reference otherwise, with one warning per process when they are unavailable).
 """
 
 from __future__ import annotations
@@ -198,44 +198,24 @@ def encode_reference(table: Tensor, x01: Tensor, meta: HashGridMeta) -> Tensor:
 # ---------------------------------------------------------------------------------------------- fast path
 
 
-DTYPE_CODES = {torch.float32: 0, torch.float64: 1}
-
-
-def _ptr(t: Tensor | None) -> int:
-    return 0 if t is None else t.data_ptr()
-
-
-def _check_layout(table: Tensor, offsets: Tensor, resolutions: Tensor, dense: Tensor, x_dtype: torch.dtype) -> None:
-    """The kernels trust the level buffers (raw pointers): they must match the table exactly."""
-    n_levels = resolutions.numel()
-    if not (offsets.dtype == resolutions.dtype == torch.int64 and dense.dtype == torch.bool
-            and offsets.is_contiguous() and resolutions.is_contiguous() and dense.is_contiguous()
-            and offsets.device.type == resolutions.device.type == dense.device.type == "cpu"
-            and offsets.numel() == n_levels + 1 and dense.numel() == n_levels
-            and int(offsets[-1]) == table.shape[0] and x_dtype == table.dtype):
-        raise ValueError("hash grid fast path: level buffers do not match the table "
-                         f"({table.shape[0]} rows, {table.dtype}; points {x_dtype})")
+#: the dtypes of the fast paths (points, tables, decoder inputs)
+FAST_DTYPES = (torch.float32, torch.float64)
 
 
 class _FastHashEncode(torch.autograd.Function):
     """The C++ kernels as an autograd op: gradients w.r.t. the points and the table, each only when needed.
 
-    Inputs are checked by :meth:`HashGrid.uses_fast_path` (CPU, same float dtype); here they are made
-    contiguous and the outputs allocated, since the kernels work on raw buffers.
+    Inputs are checked by :meth:`HashGrid.uses_fast_path` (CPU, same float dtype) and again by the kernels
+    (dtypes, shapes, the level buffers against the table); here they are made contiguous.
     """
 
     @staticmethod
     def forward(ctx, x01: Tensor, table: Tensor, offsets: Tensor, resolutions: Tensor, dense: Tensor,
                 table_size: int) -> Tensor:
-        ext = _ext.load_hash_grid_ext()
+        kernels = _ext.load_map_kernels()
         x01 = x01.detach().contiguous()
         table_c = table.detach().contiguous()
-        n, n_features = x01.shape[0], table_c.shape[1]
-        n_levels = resolutions.numel()
-        _check_layout(table_c, offsets, resolutions, dense, x01.dtype)
-        out = torch.empty(n, n_levels * n_features, dtype=x01.dtype)
-        ext.forward(DTYPE_CODES[x01.dtype], n_features, _ptr(x01), _ptr(table_c), _ptr(out), n, n_levels,
-                    _ptr(offsets), _ptr(resolutions), _ptr(dense), table_size, torch.get_num_threads())
+        out = kernels.hash_grid_forward(x01, table_c, offsets, resolutions, dense, table_size)
         ctx.save_for_backward(x01, table_c, offsets, resolutions, dense)
         ctx.table_size = table_size
         return out
@@ -247,13 +227,9 @@ class _FastHashEncode(torch.autograd.Function):
         need_x, need_table = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         if not (need_x or need_table):
             return None, None, None, None, None, None
-        ext = _ext.load_hash_grid_ext()
-        grad_out = grad_out.to(x01.dtype).contiguous()
-        grad_x = torch.empty_like(x01) if need_x else None
-        grad_table = torch.zeros_like(table) if need_table else None  # the kernel adds into it
-        ext.backward(DTYPE_CODES[x01.dtype], table.shape[1], _ptr(grad_out), _ptr(x01), _ptr(table), _ptr(grad_x),
-                     _ptr(grad_table), x01.shape[0], resolutions.numel(), _ptr(offsets), _ptr(resolutions),
-                     _ptr(dense), ctx.table_size, torch.get_num_threads())
+        grad_x, grad_table = _ext.load_map_kernels().hash_grid_backward(
+            grad_out.to(x01.dtype).contiguous(), x01, table, offsets, resolutions, dense, ctx.table_size,
+            need_x, need_table)
         return grad_x, grad_table, None, None, None, None
 
 
@@ -280,25 +256,17 @@ def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"
     meta = grids[0].meta
     if any(g.meta != meta for g in grids) or not all(g.uses_fast_path(x) for g in grids):
         return None
-    ext = _ext.load_hash_grid_ext()
+    kernels = _ext.load_map_kernels()
     x = x.detach().contiguous()
     c = centres.detach().to(x.dtype).contiguous().reshape(-1, 3)
-    tables = [g.table.detach().contiguous() for g in grids]  # kept alive here: the kernel reads raw pointers
     g0 = grids[0]
-    _check_layout(tables[0], g0.level_offsets, g0.level_resolutions, g0.level_is_dense, x.dtype)
-    if any(t.shape != tables[0].shape or t.dtype != tables[0].dtype for t in tables[1:]):
-        raise ValueError("hash grid fast path: the blocks' tables differ in shape or dtype")
-    out = torch.empty(x.shape[0], meta.n_output_dims, dtype=x.dtype)
-    valid = torch.empty(x.shape[0], dtype=torch.bool)
-    jac = torch.empty(x.shape[0], 3, meta.n_output_dims, dtype=x.dtype) if jacobian else None
-    ext.forward_blocks(DTYPE_CODES[x.dtype], meta.n_features, _ptr(x), _ptr(c), [_ptr(t) for t in tables],
-                       float(edge_m), float(blend_m), _ptr(out), _ptr(valid), _ptr(jac), x.shape[0], meta.n_levels,
-                       _ptr(g0.level_offsets), _ptr(g0.level_resolutions), _ptr(g0.level_is_dense),
-                       meta.table_size, torch.get_num_threads())
+    out, valid, jac = kernels.hash_grid_forward_blocks(
+        x, c, [g.table.detach().contiguous() for g in grids], g0.level_offsets, g0.level_resolutions,
+        g0.level_is_dense, meta.table_size, float(edge_m), float(blend_m), jacobian)
     return (out, valid, jac) if jacobian else (out, valid)
 
 
-#: why the fast CPU path cannot be used in this process (builds it if needed), or ``None`` if it can
+#: why the fast CPU path cannot be used in this process (loads the kernels if needed), or ``None`` if it can
 fast_path_unavailable_reason = _ext.unavailable_reason
 
 
@@ -323,9 +291,9 @@ class HashGrid(nn.Module):
 
     Args:
         cfg: the grid's configuration (levels, features, table size, resolutions, init scale).
-        backend: ``"auto"`` (fast path for CPU float32/float64 tensors when the extension builds, otherwise
-            the reference; a failed build warns once per process), ``"fast"`` (the C++ path; raises if it
-            cannot be built; CPU tensors only) or ``"reference"`` (plain torch).
+        backend: ``"auto"`` (fast path for CPU float32/float64 tensors when the C++ kernels load, otherwise
+            the reference; unavailable kernels warn once per process), ``"fast"`` (the C++ path; raises if
+            the kernels are unavailable; CPU tensors only) or ``"reference"`` (plain torch).
         seed: seed of the table's initialisation ``uniform(-init_scale, init_scale)``; ``None`` draws from
             torch's global generator.
 
@@ -375,11 +343,11 @@ class HashGrid(nn.Module):
         return self.table.numel() * self.table.element_size()
 
     def uses_fast_path(self, x01: Tensor) -> bool:
-        """Whether :meth:`forward` on ``x01`` runs the C++ path (may build the extension)."""
+        """Whether :meth:`forward` on ``x01`` runs the C++ path (may load the kernels)."""
         if self.backend == "reference":
             return False
         eligible = (x01.device.type == "cpu" and self.table.device.type == "cpu"
-                    and x01.dtype in (torch.float32, torch.float64) and x01.dtype == self.table.dtype
+                    and x01.dtype in FAST_DTYPES and x01.dtype == self.table.dtype
                     and self.meta.n_features in FAST_FEATURE_COUNTS)
         if self.backend == "fast":
             if not eligible:

@@ -10,7 +10,7 @@ per-block hash features disambiguate.
 Two interchangeable implementations, as for the hash grid (:mod:`.hash_grid`):
 
 - :func:`encode_reference`: plain torch, any device and float dtype, differentiated by autograd;
-- the fast CPU path: one pass over the points in C++ (``csrc/one_blob_kernels.h``, in the extension of
+- the fast CPU path: one pass over the points in C++ (``csrc/one_blob_kernels.h``, in the module of
   :mod:`._ext`) with a hand-written gradient w.r.t. the points. Torch's chain of about ten element-wise
   ops over ``(N, 3, K)`` and autograd's walk back through them cost more than the decoders the code
   feeds; the kernel needs two exponentials per axis and side instead of K (see its header).
@@ -19,7 +19,7 @@ Tracking's closed-form spatial gradients also need the codes' derivatives themse
 summed over them): :func:`encode_with_slopes`, in torch (three small element-wise ops beside the reference's).
 
 :class:`OneBlob` picks between them like :class:`~.hash_grid.HashGrid` (``backend="auto"``: the fast path
-for CPU float32/float64 points when the extension builds, the reference otherwise).
+for CPU float32/float64 points when the C++ kernels load, the reference otherwise).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from torch import Tensor
 from ..config import OneBlobConfig
 from ..errors import ConfigError
 from . import _ext
-from .hash_grid import BACKENDS, DTYPE_CODES
+from .hash_grid import BACKENDS, FAST_DTYPES
 
 
 def _offsets_and_codes(points_world: Tensor, n_bins: int, period_m: float) -> tuple[Tensor, Tensor]:
@@ -61,11 +61,8 @@ class _FastOneBlob(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, points: Tensor, n_bins: int, period_m: float) -> Tensor:
-        ext = _ext.load_hash_grid_ext()
         x = points.detach().contiguous()
-        out = torch.empty(x.shape[0], 3 * n_bins, dtype=x.dtype)
-        ext.one_blob_forward(DTYPE_CODES[x.dtype], x.data_ptr(), out.data_ptr(), x.shape[0], n_bins, period_m,
-                             torch.get_num_threads())
+        out = _ext.load_map_kernels().one_blob_forward(x, n_bins, period_m)
         ctx.save_for_backward(x)
         ctx.n_bins, ctx.period_m = n_bins, period_m
         return out
@@ -74,11 +71,8 @@ class _FastOneBlob(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: Tensor):
         (x,) = ctx.saved_tensors
-        grad_out = grad_out.to(x.dtype).contiguous()
-        grad_x = torch.empty_like(x)
-        _ext.load_hash_grid_ext().one_blob_backward(DTYPE_CODES[x.dtype], grad_out.data_ptr(), x.data_ptr(),
-                                                     grad_x.data_ptr(), x.shape[0], ctx.n_bins, ctx.period_m,
-                                                     torch.get_num_threads())
+        grad_x = _ext.load_map_kernels().one_blob_backward(grad_out.to(x.dtype).contiguous(), x, ctx.n_bins,
+                                                           ctx.period_m)
         return grad_x, None, None
 
 
@@ -101,8 +95,8 @@ class OneBlob(torch.nn.Module):
         return 3 * self.cfg.n_bins
 
     def uses_fast_path(self, points: Tensor) -> bool:
-        """Whether :meth:`forward` on ``points`` runs the C++ path (may build the extension)."""
-        eligible = points.device.type == "cpu" and points.dtype in DTYPE_CODES
+        """Whether :meth:`forward` on ``points`` runs the C++ path (may load the kernels)."""
+        eligible = points.device.type == "cpu" and points.dtype in FAST_DTYPES
         return _ext.use_fast_path(self.backend, eligible, "OneBlob",
                                   f"CPU float32/float64 points; got {points.dtype} on {points.device}")
 

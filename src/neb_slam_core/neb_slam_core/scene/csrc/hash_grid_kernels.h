@@ -2,7 +2,7 @@
 //
 // Written by hand because no library we use ships a CPU kernel for this encoding: torch's own ops
 // (gather + weighted sum per level) move far more memory than needed, and the libraries that implement
-// it (tiny-cuda-nn and the like) are CUDA-only. hash_grid.cpp binds these kernels to torch.
+// it (tiny-cuda-nn and the like) are CUDA-only. map_kernels.cpp binds these kernels to torch.
 //
 // Layout and maths (identical to encode_reference in hash_grid.py, which the tests compare against):
 //   x        (N, 3)     local coordinates, clamped to [0, 1] (the gradient is zero outside, as torch.clamp)
@@ -14,9 +14,10 @@
 //   hashed index (ix ^ iy*2654435761 ^ iz*805459861) & (T-1)  (uint32 arithmetic) otherwise.
 // Corner k uses bit 0 of k for x, bit 1 for y, bit 2 for z.
 //
-// Speed (DESIGN.md section 7; 2-core CPU). Points go through in blocks of kBlock: for one level, a first
-// pass computes the 8 corner rows and weights of every point of the block (branch-free arithmetic the
-// compiler vectorises), a second pass does the lookups. Work split across threads:
+// Speed (tuned on a 2-core CPU; benchmarks/encoding.py measures it, docs/benchmarks.md keeps the results).
+// Points go through in blocks of kBlock: for one level, a first pass computes the 8 corner rows and
+// weights of every point of the block (branch-free arithmetic the compiler vectorises), a second pass
+// does the lookups. Work split across threads:
 //   forward       blocks of points (dynamic schedule: a thread the OS preempts does not hold up the rest);
 //                 inside a block, level by level, so the block's output rows stay in L1/L2.
 //   table grad    each thread owns whole levels, so every table row is written by one thread only: no

@@ -13,8 +13,10 @@ CONFIG ?= synthetic
 
 venv: $(STAMP)
 
-# Re-run only when the pinned requirements or the core's packaging change (fast no-op otherwise).
-$(STAMP): requirements.txt src/neb_slam_core/setup.cfg src/neb_slam_core/setup.py
+# Re-run only when the pinned requirements, the core's packaging or its C++ kernels change (fast no-op
+# otherwise): installing builds the kernels.
+$(STAMP): requirements.txt src/neb_slam_core/setup.cfg src/neb_slam_core/setup.py \
+		$(wildcard src/neb_slam_core/neb_slam_core/scene/csrc/*) src/neb_slam_core/neb_slam_core/scene/_ext.py
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade "pip>=24"
 	$(PY) -m pip install --quiet -r requirements.txt
@@ -22,6 +24,8 @@ $(STAMP): requirements.txt src/neb_slam_core/setup.cfg src/neb_slam_core/setup.p
 	@touch $(STAMP)
 
 test: venv
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q tests
 
 build: venv

@@ -12,7 +12,7 @@ import os
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +65,7 @@ def report(figures: dict, json_path: Path | None, benchmark: str | None = None) 
 def commit_id(repo: Path = REPO) -> str:
     """``git rev-parse --short HEAD``, with ``-dirty`` when tracked files differ from it (untracked files,
     such as new result files, do not count); ``unknown`` outside a git checkout."""
+
     def git(*args: str) -> str | None:
         try:
             done = subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=30)
@@ -79,18 +80,17 @@ def commit_id(repo: Path = REPO) -> str:
     return head + ("-dirty" if changes else "")
 
 
-def stamp(benchmark: str, figures: dict, first_frame_s: float | None = None,
-          now: datetime | None = None) -> dict:
+def stamp(benchmark: str, figures: dict, first_frame_s: float | None = None, now: datetime | None = None) -> dict:
     """What a result was measured at and under: ``benchmark``, ``commit`` (:func:`commit_id`), ``date_utc``
     (ISO 8601, seconds), ``load_average`` (the machine's 1, 5 and 15 minute load averages at the end of the
     run), ``cpus``, ``argv`` (the script's arguments) and, when the benchmark has one (an argument, else
     ``figures["first_frame_s"]``), ``first_frame_s``: the same work in every run, so it tells the machine's
     speed at the time."""
-    now = now or datetime.now(timezone.utc)
+    now = now or datetime.now(UTC)
     out = {
         "benchmark": benchmark,
         "commit": commit_id(),
-        "date_utc": now.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "date_utc": now.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "load_average": [round(v, 2) for v in os.getloadavg()],
         "cpus": os.cpu_count(),
         "argv": sys.argv[1:],
@@ -102,17 +102,23 @@ def stamp(benchmark: str, figures: dict, first_frame_s: float | None = None,
     return out
 
 
-def record(benchmark: str, figures: dict, json_path: Path | None = None, results_dir: Path | None = None,
-           first_frame_s: float | None = None, now: datetime | None = None) -> Path:
+def record(
+    benchmark: str,
+    figures: dict,
+    json_path: Path | None = None,
+    results_dir: Path | None = None,
+    first_frame_s: float | None = None,
+    now: datetime | None = None,
+) -> Path:
     """Write ``figures`` with a :func:`stamp` (under the key ``stamp``; the figures' own keys unchanged) to
     ``<results_dir>/<benchmark>-<YYYYmmdd-HHMMSS>.json`` (UTC; default folder ``benchmarks/results``) and,
     when given, to ``json_path`` (the same content). Returns the results file's path."""
-    now = now or datetime.now(timezone.utc)
+    now = now or datetime.now(UTC)
     stamped = {**figures, STAMP_KEY: stamp(benchmark, figures, first_frame_s, now)}
     text = json.dumps(stamped, indent=2) + "\n"
     folder = Path(results_dir) if results_dir is not None else RESULTS
     folder.mkdir(parents=True, exist_ok=True)
-    base = f"{benchmark}-{now.astimezone(timezone.utc).strftime('%Y%m%d-%H%M%S')}"
+    base = f"{benchmark}-{now.astimezone(UTC).strftime('%Y%m%d-%H%M%S')}"
     path, k = folder / f"{base}.json", 1
     while path.exists():  # two runs within one second
         k += 1
@@ -141,8 +147,8 @@ def fitted_tum_map(cfg, fit_frames: int, fit_iterations: int, later_frames: int,
     rectify = Rectifier()
     ds = open_dataset(TUM)
     usable = [i for i in range(len(ds)) if ds[i].T_world_cam is not None]
-    fit = [rectify(ds[i]) for i in usable[:2 * fit_frames:2]]
-    later = [rectify(ds[i]) for i in usable[2 * fit_frames:2 * fit_frames + later_frames]]
+    fit = [rectify(ds[i]) for i in usable[: 2 * fit_frames : 2]]
+    later = [rectify(ds[i]) for i in usable[2 * fit_frames : 2 * fit_frames + later_frames]]
     mapping = KnownPoseMapping(cfg)
     for frame in fit:
         mapping.add(frame)

@@ -100,15 +100,30 @@ DECODER_REF = "decoders reference forward (no grad)"
 BLENDED_JACOBIAN = "fast blended forward + Jacobian (3 blocks)"
 DECODER_TANGENTS = "decoders fast forward with tangents"
 #: the measurements of --against: the fast paths (the kernels and their binding), in timing order
-AGAINST = (FAST_FWD, FAST_MAPPING, FAST_TRACKING, BLENDED_JACOBIAN, BLOB_FAST_FWD, BLOB_FAST_FWD_BWD, DECODER_FAST,
-           DECODER_TANGENTS)
+AGAINST = (
+    FAST_FWD,
+    FAST_MAPPING,
+    FAST_TRACKING,
+    BLENDED_JACOBIAN,
+    BLOB_FAST_FWD,
+    BLOB_FAST_FWD_BWD,
+    DECODER_FAST,
+    DECODER_TANGENTS,
+)
 #: the --json file's timing keys (median ms of the 44,032 ray points) and the measurements they hold
 JSON_TIMINGS = {
-    "fast_fwd_ms": FAST_FWD, "fast_fwd_bwd_ms": FAST_MAPPING, "fast_fwd_bwd_points_ms": FAST_TRACKING,
-    "reference_fwd_bwd_ms": REFERENCE, "floor_gather_ms": FLOOR_RANDOM, "floor_gather_local_ms": FLOOR_LOCAL,
-    "one_blob_fast_fwd_ms": BLOB_FAST_FWD, "one_blob_fast_fwd_bwd_ms": BLOB_FAST_FWD_BWD,
-    "one_blob_reference_fwd_ms": BLOB_REF_FWD, "one_blob_reference_fwd_bwd_ms": BLOB_REF_FWD_BWD,
-    "decoder_fast_fwd_ms": DECODER_FAST, "decoder_reference_fwd_ms": DECODER_REF,
+    "fast_fwd_ms": FAST_FWD,
+    "fast_fwd_bwd_ms": FAST_MAPPING,
+    "fast_fwd_bwd_points_ms": FAST_TRACKING,
+    "reference_fwd_bwd_ms": REFERENCE,
+    "floor_gather_ms": FLOOR_RANDOM,
+    "floor_gather_local_ms": FLOOR_LOCAL,
+    "one_blob_fast_fwd_ms": BLOB_FAST_FWD,
+    "one_blob_fast_fwd_bwd_ms": BLOB_FAST_FWD_BWD,
+    "one_blob_reference_fwd_ms": BLOB_REF_FWD,
+    "one_blob_reference_fwd_bwd_ms": BLOB_REF_FWD_BWD,
+    "decoder_fast_fwd_ms": DECODER_FAST,
+    "decoder_reference_fwd_ms": DECODER_REF,
 }
 
 
@@ -208,8 +223,10 @@ def floor_fns(x01: torch.Tensor, cfg: HashGridConfig) -> dict:
     rand_rows = torch.randint(0, meta.n_entries, (n_rows,), generator=torch.Generator().manual_seed(2))
     local_rows = torch.cat([level_cells(x01, meta, level)[0].reshape(-1) for level in range(meta.n_levels)])
     assert local_rows.numel() == n_rows
-    return {FLOOR_RANDOM: lambda: table.index_select(0, rand_rows),
-            FLOOR_LOCAL: lambda: table.index_select(0, local_rows)}
+    return {
+        FLOOR_RANDOM: lambda: table.index_select(0, rand_rows),
+        FLOOR_LOCAL: lambda: table.index_select(0, local_rows),
+    }
 
 
 def blended_fns(x01: torch.Tensor, cfg: HashGridConfig) -> dict:
@@ -225,13 +242,17 @@ def blended_fns(x01: torch.Tensor, cfg: HashGridConfig) -> dict:
     return {BLENDED_JACOBIAN: forward_jacobian}
 
 
-def run_case(label: str, x01: torch.Tensor, cfg: HashGridConfig, repeats: int, ref_repeats: int,
-             with_reference: bool) -> CaseResult:
+def run_case(
+    label: str, x01: torch.Tensor, cfg: HashGridConfig, repeats: int, ref_repeats: int, with_reference: bool
+) -> CaseResult:
     timings: dict[str, tuple[float, float]] = {}
     for name, fn in grid_fns(x01, cfg, with_reference).items():
         timings[name] = median_ms(fn, ref_repeats, warmup=1) if name == REFERENCE else median_ms(fn, repeats)
-    for fns in (floor_fns(x01, cfg), one_blob_fns((x01 - 0.5) * 5.0),  # the same points in metres, block at 0
-                decoder_fns(x01.shape[0])):
+    for fns in (
+        floor_fns(x01, cfg),
+        one_blob_fns((x01 - 0.5) * 5.0),  # the same points in metres, block at 0
+        decoder_fns(x01.shape[0]),
+    ):
         timings.update({name: median_ms(fn, repeats) for name, fn in fns.items()})
     return CaseResult(label, x01.shape[0], timings)
 
@@ -248,9 +269,11 @@ def decoder_fns(n: int, with_tangents: bool = False) -> dict:
     ref.load_state_dict(fast.state_dict())
     fns = {}
     for name, dec in ((DECODER_FAST, fast), (DECODER_REF, ref)):
+
         def forward(dec=dec):
             with torch.no_grad():
                 dec(blob, feats)
+
         fns[name] = forward
     if with_tangents:
         fns[DECODER_TANGENTS] = lambda: fast.forward_with_tangents(blob, feats, slopes, d_feats)
@@ -263,8 +286,10 @@ def one_blob_fns(points_world: torch.Tensor) -> dict:
     grad_out = torch.randn(points_world.shape[0], n_dims, generator=torch.Generator().manual_seed(3))
     p = points_world.clone().requires_grad_(True)
     fns = {}
-    for backend, (fwd_name, bwd_name) in (("fast", (BLOB_FAST_FWD, BLOB_FAST_FWD_BWD)),
-                                          ("reference", (BLOB_REF_FWD, BLOB_REF_FWD_BWD))):
+    for backend, (fwd_name, bwd_name) in (
+        ("fast", (BLOB_FAST_FWD, BLOB_FAST_FWD_BWD)),
+        ("reference", (BLOB_REF_FWD, BLOB_REF_FWD_BWD)),
+    ):
         enc = OneBlob(OneBlobConfig(), backend=backend)
 
         def forward(enc=enc):
@@ -299,15 +324,28 @@ def worker(threads: int) -> int:
 
     x01 = ray_points(1024, seed=1024)
     cfg = HashGridConfig()
-    fns = {**grid_fns(x01, cfg, with_reference=False), **blended_fns(x01, cfg),
-           **one_blob_fns((x01 - 0.5) * 5.0), **decoder_fns(x01.shape[0], with_tangents=True)}
+    fns = {
+        **grid_fns(x01, cfg, with_reference=False),
+        **blended_fns(x01, cfg),
+        **one_blob_fns((x01 - 0.5) * 5.0),
+        **decoder_fns(x01.shape[0], with_tangents=True),
+    }
     fns = {name: fns[name] for name in AGAINST}
     for fn in fns.values():  # warm-up
         fn()
         fn()
     kernels = getattr(_ext, "_module", None)
-    answers.write(json.dumps({"package": neb_slam_core.__file__, "kernels": getattr(kernels, "__file__", "?"),
-                              "threads": torch.get_num_threads(), "n_points": x01.shape[0]}) + "\n")
+    answers.write(
+        json.dumps(
+            {
+                "package": neb_slam_core.__file__,
+                "kernels": getattr(kernels, "__file__", "?"),
+                "threads": torch.get_num_threads(),
+                "n_points": x01.shape[0],
+            }
+        )
+        + "\n"
+    )
     answers.flush()
     for line in sys.stdin:
         if not line.strip():
@@ -325,9 +363,13 @@ class Worker:
     def __init__(self, label: str, package_root: Path, threads: int, env: dict | None = None):
         self.label = label
         environ = {**os.environ, **(env or {}), "PYTHONPATH": str(package_root)}
-        self.proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--worker", "--threads",
-                                      str(threads)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                     env=environ)
+        self.proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), "--worker", "--threads", str(threads)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=environ,
+        )
         self.info = self._read()
         if "error" in self.info:
             raise RuntimeError(f"{label}: the fast path is unavailable: {self.info['error']}")
@@ -357,6 +399,7 @@ class Worker:
 def export_tree(commit: str, dest: Path) -> str:
     """``src/neb_slam_core`` of ``commit`` into ``dest`` (``git archive``), with its install build of the
     kernels when its setup.py has one; returns the full commit id."""
+
     def git(*args: str, **kwargs) -> subprocess.CompletedProcess:
         return subprocess.run(["git", "-C", str(REPO), *args], check=True, capture_output=True, **kwargs)
 
@@ -366,8 +409,9 @@ def export_tree(commit: str, dest: Path) -> str:
         tar.extractall(dest, filter="data")
     package = dest / "src" / "neb_slam_core"
     print(f"building the kernels of {full[:12]} in {package}", file=sys.stderr)
-    subprocess.run([sys.executable, "setup.py", "-q", "build_ext", "--inplace"], cwd=package, check=True,
-                   stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, "setup.py", "-q", "build_ext", "--inplace"], cwd=package, check=True, stdout=subprocess.DEVNULL
+    )
     return full
 
 
@@ -389,7 +433,7 @@ def against(commit: str, threads: int, rounds: int, repeats: int, json_path: Pat
         times: dict[str, dict[str, list[float]]] = {w.label: {name: [] for name in AGAINST} for w in workers}
         for r in tqdm(range(rounds), desc="interleaved rounds", unit="round"):
             for name in AGAINST:
-                for w in (workers if r % 2 == 0 else workers[::-1]):  # who goes first alternates
+                for w in workers if r % 2 == 0 else workers[::-1]:  # who goes first alternates
                     times[w.label][name] += w.time(name, repeats)
     finally:
         for w in workers:
@@ -397,22 +441,38 @@ def against(commit: str, threads: int, rounds: int, repeats: int, json_path: Pat
         shutil.rmtree(base, ignore_errors=True)
 
     measurements = {}
-    print(f"\nthis tree ({commit_id()}) against {full[:12]}: {new.info['n_points']:,} ray points, torch threads "
-          f"{threads}, {rounds} rounds x {repeats} repeats each, load average (1 min) at the end: "
-          f"{os.getloadavg()[0]:.2f}")
-    print(f"  {'':44s} {'old median':>10s} {'new median':>10s} {'new/old':>8s} {'old min':>8s} {'new min':>8s} "
-          f"{'new/old':>8s}")
+    print(
+        f"\nthis tree ({commit_id()}) against {full[:12]}: {new.info['n_points']:,} ray points, torch threads "
+        f"{threads}, {rounds} rounds x {repeats} repeats each, load average (1 min) at the end: "
+        f"{os.getloadavg()[0]:.2f}"
+    )
+    print(
+        f"  {'':44s} {'old median':>10s} {'new median':>10s} {'new/old':>8s} {'old min':>8s} {'new min':>8s} "
+        f"{'new/old':>8s}"
+    )
     for name in AGAINST:
         o, n = times["old"][name], times["new"][name]
-        m = {"old_median_ms": statistics.median(o), "new_median_ms": statistics.median(n), "old_min_ms": min(o),
-             "new_min_ms": min(n)}
+        m = {
+            "old_median_ms": statistics.median(o),
+            "new_median_ms": statistics.median(n),
+            "old_min_ms": min(o),
+            "new_min_ms": min(n),
+        }
         m["ratio_median"] = m["new_median_ms"] / m["old_median_ms"]
         m["ratio_min"] = m["new_min_ms"] / m["old_min_ms"]
         measurements[name] = m
-        print(f"  {name:44s} {m['old_median_ms']:10.2f} {m['new_median_ms']:10.2f} {m['ratio_median']:8.3f} "
-              f"{m['old_min_ms']:8.2f} {m['new_min_ms']:8.2f} {m['ratio_min']:8.3f}")
-    figures = {"against": full, "n_points": new.info["n_points"], "threads": threads, "rounds": rounds,
-               "repeats_per_round": repeats, "load_average_1min": os.getloadavg()[0]}
+        print(
+            f"  {name:44s} {m['old_median_ms']:10.2f} {m['new_median_ms']:10.2f} {m['ratio_median']:8.3f} "
+            f"{m['old_min_ms']:8.2f} {m['new_min_ms']:8.2f} {m['ratio_min']:8.3f}"
+        )
+    figures = {
+        "against": full,
+        "n_points": new.info["n_points"],
+        "threads": threads,
+        "rounds": rounds,
+        "repeats_per_round": repeats,
+        "load_average_1min": os.getloadavg()[0],
+    }
     for key, name in JSON_TIMINGS.items():
         if name in measurements:
             figures[key] = measurements[name]["new_median_ms"]
@@ -428,20 +488,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="fewer repeats, 44,032 points only")
     parser.add_argument("--json", type=Path, help="write the headline figures to this JSON file too")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch threads (default: cores)")
-    parser.add_argument("--repeats", type=int, default=None,
-                        help="timed repeats per measurement (--against: per measurement and round, default 3)")
-    parser.add_argument("--against", metavar="COMMIT",
-                        help="time this tree's fast paths against COMMIT's, interleaved in one run")
-    parser.add_argument("--rounds", type=int, default=None, help="--against: interleaved rounds (default 10, "
-                        "--quick 4)")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="timed repeats per measurement (--against: per measurement and round, default 3)",
+    )
+    parser.add_argument(
+        "--against", metavar="COMMIT", help="time this tree's fast paths against COMMIT's, interleaved in one run"
+    )
+    parser.add_argument(
+        "--rounds", type=int, default=None, help="--against: interleaved rounds (default 10, --quick 4)"
+    )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)  # one side of --against
     args = parser.parse_args(argv)
 
     if args.worker:
         return worker(args.threads)
     if args.against:
-        return against(args.against, args.threads, args.rounds or (4 if args.quick else 10), args.repeats or 3,
-                       args.json)
+        return against(
+            args.against, args.threads, args.rounds or (4 if args.quick else 10), args.repeats or 3, args.json
+        )
 
     torch.set_num_threads(args.threads)
     reason = fast_path_unavailable_reason()  # loads (or builds) the kernels now, outside the timings
@@ -455,8 +522,11 @@ def main(argv: list[str] | None = None) -> int:
     repeats = args.repeats or (5 if args.quick else 15)
     ref_repeats = 2 if args.quick else 5
 
-    cases = [("rays", 1024), ("uniform", 1024)] if args.quick else [
-        ("rays", 1024), ("uniform", 1024), ("rays", 2560), ("uniform", 2560)]
+    cases = (
+        [("rays", 1024), ("uniform", 1024)]
+        if args.quick
+        else [("rays", 1024), ("uniform", 1024), ("rays", 2560), ("uniform", 2560)]
+    )
     results: list[CaseResult] = []
     for kind, n_rays in tqdm(cases, desc="benchmark cases", unit="case"):
         n = n_rays * N_SAMPLES_PER_RAY
@@ -466,11 +536,15 @@ def main(argv: list[str] | None = None) -> int:
 
     meta = HashGridMeta.from_config(cfg)
     print()
-    print(f"hash-grid encoding: {meta.n_levels} levels x {meta.n_features} features, T = 2^{cfg.log2_hashmap_size}, "
-          f"R {meta.level_resolutions[0]}..{meta.level_resolutions[-1]}, {meta.n_entries:,} rows")
+    print(
+        f"hash-grid encoding: {meta.n_levels} levels x {meta.n_features} features, T = 2^{cfg.log2_hashmap_size}, "
+        f"R {meta.level_resolutions[0]}..{meta.level_resolutions[-1]}, {meta.n_entries:,} rows"
+    )
     print(f"parameters per block: {block_mb_t15:.2f} MB at T = 2^15, {block_mb_t14:.2f} MB at T = 2^14")
-    print(f"torch threads: {torch.get_num_threads()}, load average (1 min) at the end: {os.getloadavg()[0]:.2f}, "
-          f"repeats: {repeats} (reference {ref_repeats})")
+    print(
+        f"torch threads: {torch.get_num_threads()}, load average (1 min) at the end: {os.getloadavg()[0]:.2f}, "
+        f"repeats: {repeats} (reference {ref_repeats})"
+    )
     for res in results:
         t = {k: v[0] for k, v in res.timings.items()}
         print(f"\n{res.label} points ({res.n_points * meta.n_levels * 8 / 1e6:.1f} M row lookups)")
@@ -481,8 +555,7 @@ def main(argv: list[str] | None = None) -> int:
         ratios = []
         if REFERENCE in t:
             ratios.append(f"reference/fast fwd+bwd = {t[REFERENCE] / t[FAST_MAPPING]:.1f}x")
-        ratios.append(f"fast fwd/floor = {fwd / t[FLOOR_RANDOM]:.2f} "
-                      f"(vs encoding's rows {fwd / t[FLOOR_LOCAL]:.2f})")
+        ratios.append(f"fast fwd/floor = {fwd / t[FLOOR_RANDOM]:.2f} (vs encoding's rows {fwd / t[FLOOR_LOCAL]:.2f})")
         ratios.append(f"one-blob reference/fast fwd+bwd = {t[BLOB_REF_FWD_BWD] / t[BLOB_FAST_FWD_BWD]:.1f}x")
         ratios.append(f"decoders reference/fast = {t[DECODER_REF] / t[DECODER_FAST]:.1f}x")
         print("  " + ", ".join(ratios))

@@ -46,7 +46,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "neb_slam_ros"))
 
-from common import REPO, TUM, record  # noqa: E402
+from common import REPO, TUM, record
 
 ENTRIES = ("one_process", "separate", "cli_live")
 
@@ -57,8 +57,10 @@ def default_bag() -> Path:
         if not TUM.is_dir():
             sys.exit(f"{TUM} not found: give --bag, or set NEB_SLAM_SHARED_DATA to the folder of tum_fr1_xyz_300")
         bag.parent.mkdir(parents=True, exist_ok=True)
-        subprocess.run([sys.executable, "-m", "neb_slam_core.cli.main", "convert", "tum", str(TUM), str(bag),
-                        "--depth", "32FC1"], check=True)
+        subprocess.run(
+            [sys.executable, "-m", "neb_slam_core.cli.main", "convert", "tum", str(TUM), str(bag), "--depth", "32FC1"],
+            check=True,
+        )
     return bag
 
 
@@ -74,9 +76,11 @@ def _timing_figures(run_dir: Path) -> dict:
     if len(total) < 3:
         return {}
     rest = total[1:]  # the first frame starts the map: it is first_frame_s
-    return {"first_frame_s": round(total[0] / 1e3, 3),
-            "slowest_over_median": round(float(rest.max() / np.median(rest)), 3),
-            "track_ms_median": round(float(np.median([float(r["track_ms"]) for r in rows[1:]])), 1)}
+    return {
+        "first_frame_s": round(total[0] / 1e3, 3),
+        "slowest_over_median": round(float(rest.max() / np.median(rest)), 3),
+        "track_ms_median": round(float(np.median([float(r["track_ms"]) for r in rows[1:]])), 1),
+    }
 
 
 def _lag_trend(history: list[int]) -> float | None:
@@ -114,8 +118,18 @@ def figures_of(run_dir: Path, metrics: dict, live: bool) -> dict:
 
 
 def run_cli(bag: Path, out: Path, config: str, live: bool, rate: float) -> dict:
-    cmd = [sys.executable, "-m", "neb_slam_core.cli.main", "run", str(bag), "--config", config, "--out", str(out),
-           "--no-mesh"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "neb_slam_core.cli.main",
+        "run",
+        str(bag),
+        "--config",
+        config,
+        "--out",
+        str(out),
+        "--no-mesh",
+    ]
     if live:
         cmd += ["--live", "--rate", str(rate)]
     code = subprocess.run(cmd, stdout=subprocess.DEVNULL).returncode
@@ -173,8 +187,7 @@ def main() -> None:
             f["load_average_before"] = load
             f["wall_s"] = round(time.perf_counter() - t0, 1)
             per_entry[entry].append(f)
-            print(f"{entry} run {r}: {json.dumps({k: v for k, v in f.items() if k != 'trajectory'})}",
-                  file=sys.stderr)
+            print(f"{entry} run {r}: {json.dumps({k: v for k, v in f.items() if k != 'trajectory'})}", file=sys.stderr)
     for entry, runs in per_entry.items():
         figures[entry] = median_entry(runs)
     if not args.skip_offline:
@@ -182,8 +195,15 @@ def main() -> None:
         f = run_cli(bag, out / "offline", args.offline_config, False, args.rate)
         f.update(config=args.offline_config, load_average_before=load)
         figures["offline"] = f
-    print(json.dumps({k: ({kk: vv for kk, vv in v.items() if kk != "runs"} if isinstance(v, dict) else v)
-                      for k, v in figures.items()}, indent=2))
+    print(
+        json.dumps(
+            {
+                k: ({kk: vv for kk, vv in v.items() if kk != "runs"} if isinstance(v, dict) else v)
+                for k, v in figures.items()
+            },
+            indent=2,
+        )
+    )
     record("live", figures, args.json)
 
 

@@ -32,14 +32,27 @@ import time
 from pathlib import Path
 
 from common import record
+
 from neb_slam_core.synth.generate import generate
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def run(source: Path, out: Path, loop: bool, config: str, frames: int | None, extra: list[str]) -> dict:
-    cmd = [sys.executable, "-m", "neb_slam_core.cli.main", "run", str(source), "--config", config, "--out", str(out),
-           "--set", f"loop.enabled={'true' if loop else 'false'}", *extra]
+    cmd = [
+        sys.executable,
+        "-m",
+        "neb_slam_core.cli.main",
+        "run",
+        str(source),
+        "--config",
+        config,
+        "--out",
+        str(out),
+        "--set",
+        f"loop.enabled={'true' if loop else 'false'}",
+        *extra,
+    ]
     if frames:
         cmd += ["--frames", str(frames)]
     print(f"loop closure {'on' if loop else 'off'}: {' '.join(cmd[2:])}", file=sys.stderr, flush=True)
@@ -51,14 +64,18 @@ def run(source: Path, out: Path, loop: bool, config: str, frames: int | None, ex
 
 def main() -> None:
     argv = sys.argv[1:]
-    extra = argv[argv.index("--") + 1:] if "--" in argv else []
-    argv = argv[:argv.index("--")] if "--" in argv else argv
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--noise", action="store_true", help="the scene with Kinect-like depth noise")
     p.add_argument("--config", default="synthetic")
     p.add_argument("--frames", type=int, default=None, help="only the first N frames (the loop needs them all)")
-    p.add_argument("--out", type=Path, default=None, help="parent of the two run directories "
-                                                            "(default runs/loop-ablation-<date-time>)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="parent of the two run directories (default runs/loop-ablation-<date-time>)",
+    )
     p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     p.add_argument("--skip-place-recognition", action="store_true")
     args = p.parse_args(argv)
@@ -81,24 +98,37 @@ def main() -> None:
     }
     if figures["ate_cm_with"] is not None and figures["ate_cm_without"]:
         figures["ate_ratio"] = round(figures["ate_cm_with"] / figures["ate_cm_without"], 3)
-    for key, short in (("accuracy_cm", "acc_cm"), ("completion_cm", "comp_cm"),
-                       ("completion_ratio_pct", "comp_ratio_pct"), ("s_per_frame", "s_per_frame")):
+    for key, short in (
+        ("accuracy_cm", "acc_cm"),
+        ("completion_cm", "comp_cm"),
+        ("completion_ratio_pct", "comp_ratio_pct"),
+        ("s_per_frame", "s_per_frame"),
+    ):
         figures[f"{short}_with"] = with_.get(key)
         figures[f"{short}_without"] = without.get(key)
-    figures.update({
-        "loops_detected": len(loops),
-        "loops_applied": sum(e["applied"] for e in loops),
-        "loops": [{k: e[k] for k in ("frame", "loop_frames", "score", "applied", "reason", "correction_cm",
-                                     "correction_deg")} for e in loops],
-        "n_blocks_with": with_.get("n_blocks"),
-        "n_blocks_without": without.get("n_blocks"),
-        "load_average_before": round(load_before, 2),
-        "run_dirs": [str(out / "without"), str(out / "with")],
-    })
+    figures.update(
+        {
+            "loops_detected": len(loops),
+            "loops_applied": sum(e["applied"] for e in loops),
+            "loops": [
+                {
+                    k: e[k]
+                    for k in ("frame", "loop_frames", "score", "applied", "reason", "correction_cm", "correction_deg")
+                }
+                for e in loops
+            ],
+            "n_blocks_with": with_.get("n_blocks"),
+            "n_blocks_without": without.get("n_blocks"),
+            "load_average_before": round(load_before, 2),
+            "run_dirs": [str(out / "without"), str(out / "with")],
+        }
+    )
     if not args.skip_place_recognition:
         pr_json = out / "place_recognition.json"
-        code = subprocess.run([sys.executable, str(REPO / "benchmarks" / "place_recognition.py"), "--json",
-                               str(pr_json)], stdout=subprocess.DEVNULL).returncode
+        code = subprocess.run(
+            [sys.executable, str(REPO / "benchmarks" / "place_recognition.py"), "--json", str(pr_json)],
+            stdout=subprocess.DEVNULL,
+        ).returncode
         if code != 0:
             sys.exit(f"benchmarks/place_recognition.py failed (exit code {code})")
         pr = json.loads(pr_json.read_text())

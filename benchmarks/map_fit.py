@@ -29,9 +29,17 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-
 from common import record
-from neb_slam_core.config import BlockConfig, KeyframeConfig, MappingConfig, MeshConfig, RenderConfig, SamplingConfig, SlamConfig
+
+from neb_slam_core.config import (
+    BlockConfig,
+    KeyframeConfig,
+    MappingConfig,
+    MeshConfig,
+    RenderConfig,
+    SamplingConfig,
+    SlamConfig,
+)
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.eval.recon import DepthL1Config, ReconConfig, evaluate_reconstruction
 from neb_slam_core.eval.seams import seam_step_errors
@@ -49,8 +57,12 @@ def main() -> None:
     p.add_argument("--preset", default="default", help="synthetic preset (small, default, large, corridor)")
     p.add_argument("--iterations", type=int, default=1000)
     p.add_argument("--rays", type=int, default=2048, help="rays per iteration from all keyframes (N_m)")
-    p.add_argument("--pixel-fraction", type=float, default=1.0,
-                   help="share of each training frame's pixels its keyframe keeps (1: all of them)")
+    p.add_argument(
+        "--pixel-fraction",
+        type=float,
+        default=1.0,
+        help="share of each training frame's pixels its keyframe keeps (1: all of them)",
+    )
     p.add_argument("--train-stride", type=int, default=3, help="train on every n-th frame")
     p.add_argument("--held-out", type=int, default=10, help="held-out frames to render")
     p.add_argument("--truncation", type=float, default=0.05, help="truncation distance tr (m)")
@@ -63,21 +75,28 @@ def main() -> None:
     scene = generate(args.preset, REPO / ".cache" / "scenes" / args.preset, progress=True)
     ds = open_dataset(scene)
     frames = [ds[i] for i in range(len(ds))]
-    train = frames[::args.train_stride]
+    train = frames[:: args.train_stride]
     candidates = [f for i, f in enumerate(frames) if i % args.train_stride]
     held_out = [candidates[i] for i in np.linspace(0, len(candidates) - 1, args.held_out).round().astype(int)]
     poses = [f.T_world_cam for f in train]
     render = RenderConfig(truncation_m=args.truncation, sampling=SamplingConfig(far_m=6.0))
     block_cfg = BlockConfig()
     block_cfg = BlockConfig(grid=type(block_cfg.grid)(log2_hashmap_size=args.log2_table))
-    cfg = SlamConfig(block=block_cfg, render=render, keyframes=KeyframeConfig(pixel_fraction=args.pixel_fraction),
-                     mapping=replace(MappingConfig(), n_rays=args.rays), seed=args.seed)
+    cfg = SlamConfig(
+        block=block_cfg,
+        render=render,
+        keyframes=KeyframeConfig(pixel_fraction=args.pixel_fraction),
+        mapping=replace(MappingConfig(), n_rays=args.rays),
+        seed=args.seed,
+    )
     mapping = KnownPoseMapping(cfg)
     for f in train:
         mapping.add(f)
     block_map = mapping.block_map
-    print(f"{args.preset}: {len(frames)} frames {frames[0].intrinsics.width}x{frames[0].intrinsics.height}, "
-          f"training on {len(train)}, {len(block_map)} blocks allocated")
+    print(
+        f"{args.preset}: {len(frames)} frames {frames[0].intrinsics.width}x{frames[0].intrinsics.height}, "
+        f"training on {len(train)}, {len(block_map)} blocks allocated"
+    )
 
     t0 = time.perf_counter()
     history = mapping.optimise(args.iterations, progress=True)
@@ -99,8 +118,9 @@ def main() -> None:
     mesh = extract_mesh(block_map, MeshConfig(voxel_size_m=args.voxel), observed, progress=True)
     mesh_s = time.perf_counter() - t0
     gt = trimesh.load(scene / "mesh.ply", process=False)
-    recon = evaluate_reconstruction(mesh, gt, ReconConfig(depth_l1=DepthL1Config(n_views=0)), np.stack(poses),
-                                    train[0].intrinsics, progress=False)
+    recon = evaluate_reconstruction(
+        mesh, gt, ReconConfig(depth_l1=DepthL1Config(n_views=0)), np.stack(poses), train[0].intrinsics, progress=False
+    )
 
     per_block = block_map.blocks[0].grid.param_bytes / 1e6
     decoders = block_map.decoder_param_bytes() / 1e6
@@ -126,19 +146,27 @@ def main() -> None:
     }
     print()
     print(f"blocks allocated        {figures['n_blocks']}")
-    print(f"parameters              {figures['param_mb']:.3f} MB = {figures['n_blocks']} x {per_block:.3f} MB "
-          f"+ decoders {decoders:.3f} MB")
+    print(
+        f"parameters              {figures['param_mb']:.3f} MB = {figures['n_blocks']} x {per_block:.3f} MB "
+        f"+ decoders {decoders:.3f} MB"
+    )
     print(f"held-out depth L1       {figures['held_out_depth_l1_cm']:.2f} cm ({len(held_out)} views)")
     print(f"mesh accuracy           {recon.accuracy_cm:.2f} cm")
     print(f"mesh completion         {recon.completion_cm:.2f} cm")
     print(f"completion ratio (5 cm) {recon.completion_ratio_pct:.1f} %")
     if seam_a.size:
-        print(f"seam step error         max {figures['seam_step_max_cm']:.2f} cm, p99 {figures['seam_step_p99_cm']:.2f} cm "
-              f"over {seam_a.size} seam pairs (elsewhere p99 {figures['other_step_p99_cm']:.2f} cm)")
+        print(
+            f"seam step error         max {figures['seam_step_max_cm']:.2f} cm, "
+            f"p99 {figures['seam_step_p99_cm']:.2f} cm "
+            f"over {seam_a.size} seam pairs (elsewhere p99 {figures['other_step_p99_cm']:.2f} cm)"
+        )
     else:
         print("seam step error         no seam crossings seen in the held-out views")
-    print(f"fitting                 {1e3 * figures['fit_s_per_iteration']:.0f} ms / iteration of {args.rays} + {cfg.mapping.n_rays_newest_block} rays "
-          f"(load average {figures['load_average']:.1f})")
+    print(
+        f"fitting                 {1e3 * figures['fit_s_per_iteration']:.0f} ms / iteration of {args.rays} + "
+        f"{cfg.mapping.n_rays_newest_block} rays "
+        f"(load average {figures['load_average']:.1f})"
+    )
     record(f"map_fit-{args.preset}", figures, args.json)
 
 

@@ -44,8 +44,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from common import record
+
 from neb_slam_core.config import LoopConfig
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.geometry.rectify import Rectifier
@@ -78,7 +78,7 @@ def view_overlap(frame_a, frame_b, step: int = 4) -> float:
     """Share of ``frame_a``'s valid depth pixels (every ``step``-th) that ``frame_b`` sees: inside its
     image, in front of it and not occluded (its own depth there within 5% + 2 cm). Ground-truth poses."""
     k = frame_a.intrinsics
-    v, u = np.mgrid[0:k.height:step, 0:k.width:step]
+    v, u = np.mgrid[0 : k.height : step, 0 : k.width : step]
     z = frame_a.depth_m[v, u]
     ok = z > 0
     u, v, z = u[ok], v[ok], z[ok].astype(np.float64)
@@ -115,8 +115,9 @@ class SequenceResult:
     detections: list
 
 
-def run_sequence(frames: list, cfg: LoopConfig, vocab: Vocabulary, max_cm: float, max_deg: float,
-                 with_revisits: bool) -> SequenceResult:
+def run_sequence(
+    frames: list, cfg: LoopConfig, vocab: Vocabulary, max_cm: float, max_deg: float, with_revisits: bool
+) -> SequenceResult:
     """Add the keyframes one by one, query each, and score the accepted loops against ground truth."""
     det = LoopDetector(cfg, vocab)
     res = SequenceResult(len(frames), 0, 0, 0, 0, 0, 0, 0, 0, [], [], [], [], [])
@@ -145,7 +146,7 @@ def run_sequence(frames: list, cfg: LoopConfig, vocab: Vocabulary, max_cm: float
         for c in d.loop_keyframes:
             res.n_loop_keyframes += 1
             if f.T_world_cam is None or frames[c.keyframe_id].T_world_cam is None:
-                res.n_unscored += 1   # no ground truth to judge it by
+                res.n_unscored += 1  # no ground truth to judge it by
                 continue
             gt = invert(frames[c.keyframe_id].T_world_cam) @ f.T_world_cam
             e_cm, e_deg = pose_error(c.T_cand_query, gt)
@@ -153,10 +154,19 @@ def run_sequence(frames: list, cfg: LoopConfig, vocab: Vocabulary, max_cm: float
             res.errors_deg.append(e_deg)
             false = e_cm > max_cm or e_deg > max_deg
             res.n_false += false
-            res.detections.append({"query": i, "loop_keyframe": c.keyframe_id, "score": round(c.score, 4),
-                                   "threshold": round(d.threshold, 4), "inliers": c.n_inliers,
-                                   "matches": c.n_matches, "error_cm": round(e_cm, 2),
-                                   "error_deg": round(e_deg, 2), "false": bool(false)})
+            res.detections.append(
+                {
+                    "query": i,
+                    "loop_keyframe": c.keyframe_id,
+                    "score": round(c.score, 4),
+                    "threshold": round(d.threshold, 4),
+                    "inliers": c.n_inliers,
+                    "matches": c.n_matches,
+                    "error_cm": round(e_cm, 2),
+                    "error_deg": round(e_deg, 2),
+                    "false": bool(false),
+                }
+            )
     return res
 
 
@@ -192,17 +202,25 @@ def query_time_1000(cfg: LoopConfig, vocab: Vocabulary, n_keyframes: int = 1000,
         db.query(vectors[q], max_results=cfg.top_k, exclude_ids=adjacent)
         times.append((time.perf_counter() - t0) * 1e3)
     words = [len(v) for v in vectors]
-    return {"query_ms_1000": round(statistics.median(times), 3),
-            "query_ms_1000_p90": round(float(np.percentile(times, 90)), 3),
-            "db_keyframes": len(vectors), "words_per_keyframe_mean": round(float(np.mean(words)), 1)}
+    return {
+        "query_ms_1000": round(statistics.median(times), 3),
+        "query_ms_1000_p90": round(float(np.percentile(times, 90)), 3),
+        "db_keyframes": len(vectors),
+        "words_per_keyframe_mean": round(float(np.mean(words)), 1),
+    }
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     p.add_argument("--vocabulary", default="", help="vocabulary file (default: the shipped one)")
-    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help="override a LoopConfig field, e.g. top_k=5 (repeatable)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a LoopConfig field, e.g. top_k=5 (repeatable)",
+    )
     p.add_argument("--max-error-cm", type=float, default=10.0)
     p.add_argument("--max-error-deg", type=float, default=5.0)
     p.add_argument("--skip-tum", action="store_true")
@@ -225,28 +243,35 @@ def main() -> None:
         t0 = time.perf_counter()
         Vocabulary.load(cfg.vocabulary)
         loads.append(time.perf_counter() - t0)
-    figures: dict = {"vocabulary": str(cfg.vocabulary or shipped_vocabulary_path().relative_to(REPO)),
-                     "vocab_words": vocab.n_words, "vocab_load_s": round(statistics.median(loads), 4),
-                     "vocab_load_s_first": round(first, 4)}
+    figures: dict = {
+        "vocabulary": str(cfg.vocabulary or shipped_vocabulary_path().relative_to(REPO)),
+        "vocab_words": vocab.n_words,
+        "vocab_load_s": round(statistics.median(loads), 4),
+        "vocab_load_s_first": round(first, 4),
+    }
 
     loop_frames = keyframes_of(scene(0), rectify=False)
     syn = run_sequence(loop_frames, cfg, vocab, args.max_error_cm, args.max_error_deg, with_revisits=True)
-    figures.update({
-        "revisit_recall": round(syn.n_revisits_found / max(1, syn.n_queries_with_revisit), 3),
-        "revisit_recall_one_sided": round(syn.n_one_sided_revisits_found / max(1, syn.n_queries_with_one_sided_revisit), 3),
-        "false_loops_synthetic": syn.n_false,
-        "synthetic_keyframes": syn.n_keyframes,
-        "synthetic_queries_with_revisit": syn.n_queries_with_revisit,
-        "synthetic_revisits_found": syn.n_revisits_found,
-        "synthetic_queries_with_one_sided_revisit": syn.n_queries_with_one_sided_revisit,
-        "synthetic_one_sided_revisits_found": syn.n_one_sided_revisits_found,
-        "synthetic_loop_keyframes": syn.n_loop_keyframes,
-        "synthetic_detections": syn.n_detections,
-        "synthetic_pose_error_cm_max": round(max(syn.errors_cm, default=0.0), 2),
-        "describe_ms": round(statistics.median(syn.describe_ms), 2),
-        "detect_ms": round(statistics.median(syn.detect_ms), 2),
-        "detect_ms_max": round(max(syn.detect_ms), 2),
-    })
+    figures.update(
+        {
+            "revisit_recall": round(syn.n_revisits_found / max(1, syn.n_queries_with_revisit), 3),
+            "revisit_recall_one_sided": round(
+                syn.n_one_sided_revisits_found / max(1, syn.n_queries_with_one_sided_revisit), 3
+            ),
+            "false_loops_synthetic": syn.n_false,
+            "synthetic_keyframes": syn.n_keyframes,
+            "synthetic_queries_with_revisit": syn.n_queries_with_revisit,
+            "synthetic_revisits_found": syn.n_revisits_found,
+            "synthetic_queries_with_one_sided_revisit": syn.n_queries_with_one_sided_revisit,
+            "synthetic_one_sided_revisits_found": syn.n_one_sided_revisits_found,
+            "synthetic_loop_keyframes": syn.n_loop_keyframes,
+            "synthetic_detections": syn.n_detections,
+            "synthetic_pose_error_cm_max": round(max(syn.errors_cm, default=0.0), 2),
+            "describe_ms": round(statistics.median(syn.describe_ms), 2),
+            "detect_ms": round(statistics.median(syn.detect_ms), 2),
+            "detect_ms_max": round(max(syn.detect_ms), 2),
+        }
+    )
     if args.verbose:
         print("synthetic loops:", json.dumps(syn.detections, indent=1), file=sys.stderr)
 
@@ -254,29 +279,35 @@ def main() -> None:
     if args.skip_tum:
         pass
     elif not (tum_path / "rgb.txt").is_file():
-        print(f"TUM data not found at {tum_path} (set NEB_SLAM_SHARED_DATA): false_loops_tum not measured",
-              file=sys.stderr)
+        print(
+            f"TUM data not found at {tum_path} (set NEB_SLAM_SHARED_DATA): false_loops_tum not measured",
+            file=sys.stderr,
+        )
     else:
-        tum = run_sequence(keyframes_of(tum_path, rectify=True), cfg, vocab, args.max_error_cm,
-                           args.max_error_deg, with_revisits=False)
-        figures.update({
-            "false_loops_tum": tum.n_false,
-            "tum_keyframes": tum.n_keyframes,
-            "tum_detections": tum.n_detections,
-            "tum_loop_keyframes": tum.n_loop_keyframes,
-            "tum_loop_keyframes_unscored": tum.n_unscored,
-            "tum_pose_error_cm_median": round(statistics.median(tum.errors_cm), 2) if tum.errors_cm else None,
-            "tum_pose_error_cm_max": round(max(tum.errors_cm), 2) if tum.errors_cm else None,
-            "tum_pose_error_deg_max": round(max(tum.errors_deg), 2) if tum.errors_deg else None,
-            "tum_detect_ms": round(statistics.median(tum.detect_ms), 2),
-        })
+        tum = run_sequence(
+            keyframes_of(tum_path, rectify=True), cfg, vocab, args.max_error_cm, args.max_error_deg, with_revisits=False
+        )
+        figures.update(
+            {
+                "false_loops_tum": tum.n_false,
+                "tum_keyframes": tum.n_keyframes,
+                "tum_detections": tum.n_detections,
+                "tum_loop_keyframes": tum.n_loop_keyframes,
+                "tum_loop_keyframes_unscored": tum.n_unscored,
+                "tum_pose_error_cm_median": round(statistics.median(tum.errors_cm), 2) if tum.errors_cm else None,
+                "tum_pose_error_cm_max": round(max(tum.errors_cm), 2) if tum.errors_cm else None,
+                "tum_pose_error_deg_max": round(max(tum.errors_deg), 2) if tum.errors_deg else None,
+                "tum_detect_ms": round(statistics.median(tum.detect_ms), 2),
+            }
+        )
         if args.verbose:
             print("TUM loops:", json.dumps(tum.detections, indent=1), file=sys.stderr)
 
     if not args.skip_timing:
         figures.update(query_time_1000(cfg, vocab))
-    figures.update({"config": dataclasses.asdict(cfg), "load_average": round(os.getloadavg()[0], 2),
-                    "cpus": os.cpu_count()})
+    figures.update(
+        {"config": dataclasses.asdict(cfg), "load_average": round(os.getloadavg()[0], 2), "cpus": os.cpu_count()}
+    )
     print(json.dumps(figures, indent=2))
     record("place_recognition", figures, args.json)
 

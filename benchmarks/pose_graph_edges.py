@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from common import report
+
 from neb_slam_core.config_io import load_config
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.eval.trajectory_metrics import evaluate_ate
@@ -72,15 +72,21 @@ def main() -> None:
         times.append(time.perf_counter() - t0)
     truth = np.stack([gt.poses[int(f)] for f in frame_of])
     reg_err = [correction_size(Z, invert(truth[i]) @ truth[j])[0] for (i, j), Z in closer.registrations.items()]
-    trk_err = [correction_size(invert(poses[i]) @ poses[j], invert(truth[i]) @ truth[j])[0]
-               for (i, j) in closer.registrations]
+    trk_err = [
+        correction_size(invert(poses[i]) @ poses[j], invert(truth[i]) @ truth[j])[0] for (i, j) in closer.registrations
+    ]
 
-    figures: dict = {"run": str(args.run), "ate_cm_before": ate_cm(poses),
-                     "ate_cm_keyframes_true": ate_cm(truth),
-                     "n_keyframes": len(poses), "n_registrations": len(closer.registrations),
-                     "registration_error_cm_mean": round(float(np.mean(reg_err)), 3),
-                     "tracked_error_cm_mean": round(float(np.mean(trk_err)), 3),
-                     "register_ms_mean": round(1e3 * float(np.mean(times[1:])), 1), "ends": {}}
+    figures: dict = {
+        "run": str(args.run),
+        "ate_cm_before": ate_cm(poses),
+        "ate_cm_keyframes_true": ate_cm(truth),
+        "n_keyframes": len(poses),
+        "n_registrations": len(closer.registrations),
+        "registration_error_cm_mean": round(float(np.mean(reg_err)), 3),
+        "tracked_error_cm_mean": round(float(np.mean(trk_err)), 3),
+        "register_ms_mean": round(1e3 * float(np.mean(times[1:])), 1),
+        "ends": {},
+    }
     for end_frame in args.ends:
         hits = np.flatnonzero(frame_of == end_frame)
         if len(hits) == 0:

@@ -60,8 +60,10 @@ def _ends(value) -> str:
     """pose_graph_edges' ``ends``: frame: ATE with tracked edges / with registrations."""
     if not isinstance(value, dict):
         return fmt(value)
-    return "; ".join(f"{frame}: {fmt(v.get('ate_cm_tracked_edges'))} / {fmt(v.get('ate_cm_with_registrations'))}"
-                     for frame, v in value.items())
+    return "; ".join(
+        f"{frame}: {fmt(v.get('ate_cm_tracked_edges'))} / {fmt(v.get('ate_cm_with_registrations'))}"
+        for frame, v in value.items()
+    )
 
 
 def _words(value) -> str:
@@ -78,58 +80,134 @@ class Column:
 C = Column
 #: benchmark family (the name before its first ``-``) -> headline columns
 COLUMNS: dict[str, list[Column]] = {
-    "slam": [C("config", "config"), C("frames", "frames"), C("ate_rmse_cm", "ATE cm"), C("s_per_frame", "s/frame"),
-             C("track_s_per_frame", "tracking s/frame"), C("map_s_per_frame", "mapping s/frame"),
-             C("loop_s_per_frame", "loop s/frame"), C("loops_applied", "loops applied"),
-             C("first_frame_s", "first frame s"), C("n_tracking_failures", "tracking failures"),
-             C("n_blocks", "blocks"), C("param_mb", "MB"), C("accuracy_cm", "accuracy cm"),
-             C("completion_cm", "completion cm"), C("completion_ratio_pct", "< 5 cm %"),
-             C("recon_floor_cm", "floor cm"), C("recon_points", "points per mesh")],
-    "tracking": [C("normal_equations_ms_closed", "GN system ms, closed form"),
-                 C("normal_equations_ms_fd", "forward differences"), C("normal_equations_ms_autograd", "autograd"),
-                 C("fd_over_closed", "fd / closed"), C("autograd_over_closed", "autograd / closed"),
-                 C("max_rel_diff_H_closed", "closed vs autograd (rel.)"), C("evaluate_pose_ms", "objective ms"),
-                 C("track_ms", "tracking ms/frame"), C("track_steps", "steps"), C("threads", "threads")],
-    "sample_skip": [C("skip_behind_m", "skip behind m"), C("evaluated_share", "samples evaluated"),
-                    C("map_step_ms_skip", "mapping step ms"), C("map_step_ms_all", "every sample"),
-                    C("map_step_ratio", "ratio"), C("objective_rel_diff", "objective rel. diff"),
-                    C("track_ms_skip", "tracking ms/frame"), C("track_ms_all", "every sample"),
-                    C("track_ratio", "ratio"), C("pose_gap_mm", "pose gap mm"), C("threads", "threads")],
-    "scaling": [C("n_blocks_start", "blocks"), C("n_blocks", "blocks (many)"),
-                C("track_ms_one_block", "ms/frame, one block"), C("track_ms_many_blocks", "many blocks"),
-                C("ratio", "ratio"), C("tracker_ms_one_block", "tracker ms, one block"),
-                C("tracker_ms_many_blocks", "many blocks"), C("tracker_ratio", "tracker ratio"),
-                C("threads", "threads")],
-    "map_fit": [C("iterations", "iterations"), C("n_blocks", "blocks"), C("param_mb", "MB"),
-                C("held_out_depth_l1_cm", "held-out depth L1 cm"), C("accuracy_cm", "accuracy cm"),
-                C("completion_cm", "completion cm"), C("completion_ratio_pct", "< 5 cm %"),
-                C("seam_step_max_cm", "seam step max cm"), C("seam_step_p99_cm", "seam p99 cm"),
-                C("other_step_p99_cm", "elsewhere p99 cm"), C("fit_s_per_iteration", "s/iteration")],
-    "loop_ablation": [C("config", "config"), C("frames", "frames"), C("extra_args", "engine args", _words),
-                      C("ate_cm_without", "ATE cm without"), C("ate_cm_with", "with"), C("ate_ratio", "ratio"),
-                      C("acc_cm_without", "accuracy cm without"), C("acc_cm_with", "with"),
-                      C("comp_ratio_pct_without", "< 5 cm % without"), C("comp_ratio_pct_with", "with"),
-                      C("loops_detected", "loops detected"), C("loops_applied", "applied"),
-                      C("revisit_recall", "revisit recall"), C("false_loops_synthetic", "false loops (synthetic)"),
-                      C("false_loops_tum", "false loops (TUM)")],
-    "place_recognition": [C("vocab_words", "words"), C("vocab_load_s", "vocabulary load s"),
-                          C("query_ms_1000", "query ms (1000 keyframes)"), C("describe_ms", "describe ms"),
-                          C("detect_ms", "detect ms"), C("revisit_recall", "revisit recall"),
-                          C("revisit_recall_one_sided", "one-sided"), C("false_loops_synthetic", "false (synthetic)"),
-                          C("false_loops_tum", "false (TUM)"), C("tum_detections", "TUM detections")],
-    "pose_graph_edges": [C("n_keyframes", "keyframes"), C("ate_cm_before", "ATE cm"),
-                         C("ate_cm_keyframes_true", "keyframes true"),
-                         C("ends", "by end: tracked edges / with registrations", _ends),
-                         C("registration_error_cm_mean", "registration error cm"),
-                         C("tracked_error_cm_mean", "tracked error cm"), C("register_ms_mean", "register ms")],
-    "ros_suite": [C("bag", "bag", _name_only), C("config", "config"), C("n_frames", "frames"),
-                  C("fps_separate", "fps, separate"), C("fps_one_process", "fps, one process"), C("ratio", "ratio"),
-                  C("ate_cm_separate", "ATE cm, separate"), C("ate_cm_one_process", "one process")],
-    "encoding": [C("fast_fwd_ms", "fast fwd ms"), C("fast_fwd_bwd_ms", "fwd+bwd (table)"),
-                 C("fast_fwd_bwd_points_ms", "fwd+bwd (points)"), C("reference_fwd_bwd_ms", "reference fwd+bwd"),
-                 C("floor_gather_ms", "gather floor"), C("ratio_reference_over_fast", "reference / fast"),
-                 C("ratio_fast_fwd_over_floor", "fast fwd / floor"), C("block_mb_t15", "MB/block T=2^15"),
-                 C("block_mb_t14", "T=2^14"), C("threads", "threads")],
+    "slam": [
+        C("config", "config"),
+        C("frames", "frames"),
+        C("ate_rmse_cm", "ATE cm"),
+        C("s_per_frame", "s/frame"),
+        C("track_s_per_frame", "tracking s/frame"),
+        C("map_s_per_frame", "mapping s/frame"),
+        C("loop_s_per_frame", "loop s/frame"),
+        C("loops_applied", "loops applied"),
+        C("first_frame_s", "first frame s"),
+        C("n_tracking_failures", "tracking failures"),
+        C("n_blocks", "blocks"),
+        C("param_mb", "MB"),
+        C("accuracy_cm", "accuracy cm"),
+        C("completion_cm", "completion cm"),
+        C("completion_ratio_pct", "< 5 cm %"),
+        C("recon_floor_cm", "floor cm"),
+        C("recon_points", "points per mesh"),
+    ],
+    "tracking": [
+        C("normal_equations_ms_closed", "GN system ms, closed form"),
+        C("normal_equations_ms_fd", "forward differences"),
+        C("normal_equations_ms_autograd", "autograd"),
+        C("fd_over_closed", "fd / closed"),
+        C("autograd_over_closed", "autograd / closed"),
+        C("max_rel_diff_H_closed", "closed vs autograd (rel.)"),
+        C("evaluate_pose_ms", "objective ms"),
+        C("track_ms", "tracking ms/frame"),
+        C("track_steps", "steps"),
+        C("threads", "threads"),
+    ],
+    "sample_skip": [
+        C("skip_behind_m", "skip behind m"),
+        C("evaluated_share", "samples evaluated"),
+        C("map_step_ms_skip", "mapping step ms"),
+        C("map_step_ms_all", "every sample"),
+        C("map_step_ratio", "ratio"),
+        C("objective_rel_diff", "objective rel. diff"),
+        C("track_ms_skip", "tracking ms/frame"),
+        C("track_ms_all", "every sample"),
+        C("track_ratio", "ratio"),
+        C("pose_gap_mm", "pose gap mm"),
+        C("threads", "threads"),
+    ],
+    "scaling": [
+        C("n_blocks_start", "blocks"),
+        C("n_blocks", "blocks (many)"),
+        C("track_ms_one_block", "ms/frame, one block"),
+        C("track_ms_many_blocks", "many blocks"),
+        C("ratio", "ratio"),
+        C("tracker_ms_one_block", "tracker ms, one block"),
+        C("tracker_ms_many_blocks", "many blocks"),
+        C("tracker_ratio", "tracker ratio"),
+        C("threads", "threads"),
+    ],
+    "map_fit": [
+        C("iterations", "iterations"),
+        C("n_blocks", "blocks"),
+        C("param_mb", "MB"),
+        C("held_out_depth_l1_cm", "held-out depth L1 cm"),
+        C("accuracy_cm", "accuracy cm"),
+        C("completion_cm", "completion cm"),
+        C("completion_ratio_pct", "< 5 cm %"),
+        C("seam_step_max_cm", "seam step max cm"),
+        C("seam_step_p99_cm", "seam p99 cm"),
+        C("other_step_p99_cm", "elsewhere p99 cm"),
+        C("fit_s_per_iteration", "s/iteration"),
+    ],
+    "loop_ablation": [
+        C("config", "config"),
+        C("frames", "frames"),
+        C("extra_args", "engine args", _words),
+        C("ate_cm_without", "ATE cm without"),
+        C("ate_cm_with", "with"),
+        C("ate_ratio", "ratio"),
+        C("acc_cm_without", "accuracy cm without"),
+        C("acc_cm_with", "with"),
+        C("comp_ratio_pct_without", "< 5 cm % without"),
+        C("comp_ratio_pct_with", "with"),
+        C("loops_detected", "loops detected"),
+        C("loops_applied", "applied"),
+        C("revisit_recall", "revisit recall"),
+        C("false_loops_synthetic", "false loops (synthetic)"),
+        C("false_loops_tum", "false loops (TUM)"),
+    ],
+    "place_recognition": [
+        C("vocab_words", "words"),
+        C("vocab_load_s", "vocabulary load s"),
+        C("query_ms_1000", "query ms (1000 keyframes)"),
+        C("describe_ms", "describe ms"),
+        C("detect_ms", "detect ms"),
+        C("revisit_recall", "revisit recall"),
+        C("revisit_recall_one_sided", "one-sided"),
+        C("false_loops_synthetic", "false (synthetic)"),
+        C("false_loops_tum", "false (TUM)"),
+        C("tum_detections", "TUM detections"),
+    ],
+    "pose_graph_edges": [
+        C("n_keyframes", "keyframes"),
+        C("ate_cm_before", "ATE cm"),
+        C("ate_cm_keyframes_true", "keyframes true"),
+        C("ends", "by end: tracked edges / with registrations", _ends),
+        C("registration_error_cm_mean", "registration error cm"),
+        C("tracked_error_cm_mean", "tracked error cm"),
+        C("register_ms_mean", "register ms"),
+    ],
+    "ros_suite": [
+        C("bag", "bag", _name_only),
+        C("config", "config"),
+        C("n_frames", "frames"),
+        C("fps_separate", "fps, separate"),
+        C("fps_one_process", "fps, one process"),
+        C("ratio", "ratio"),
+        C("ate_cm_separate", "ATE cm, separate"),
+        C("ate_cm_one_process", "one process"),
+    ],
+    "encoding": [
+        C("fast_fwd_ms", "fast fwd ms"),
+        C("fast_fwd_bwd_ms", "fwd+bwd (table)"),
+        C("fast_fwd_bwd_points_ms", "fwd+bwd (points)"),
+        C("reference_fwd_bwd_ms", "reference fwd+bwd"),
+        C("floor_gather_ms", "gather floor"),
+        C("ratio_reference_over_fast", "reference / fast"),
+        C("ratio_fast_fwd_over_floor", "fast fwd / floor"),
+        C("block_mb_t15", "MB/block T=2^15"),
+        C("block_mb_t14", "T=2^14"),
+        C("threads", "threads"),
+    ],
 }
 #: the script that writes each benchmark family
 SCRIPTS = {family: f"benchmarks/{family}.py" for family in COLUMNS}
@@ -161,8 +239,16 @@ def load_result(path: Path) -> Result:
         d, t = m.group("date"), m.group("time")
         date = f"{d[:4]}-{d[4:6]}-{d[6:]}T{t[:2]}:{t[2:4]}:{t[4:]}Z"
     load = st.get("load_average")
-    return Result(benchmark, date, st.get("commit") or "", load if isinstance(load, list) else [load],
-                  st.get("cpus"), list(st.get("argv") or []), figures, path.name)
+    return Result(
+        benchmark,
+        date,
+        st.get("commit") or "",
+        load if isinstance(load, list) else [load],
+        st.get("cpus"),
+        list(st.get("argv") or []),
+        figures,
+        path.name,
+    )
 
 
 def load_results(folder: Path) -> list[Result]:
@@ -210,10 +296,13 @@ def table(benchmark: str, rows: list[Result]) -> list[str]:
 
 def render(results: list[Result]) -> str:
     """The whole ``docs/benchmarks.md``."""
-    out = ["# Benchmark results", "",
-           "Generated by `benchmarks/report.py` from `benchmarks/results/*.json`; do not edit by hand. "
-           "What each benchmark measures and how to run it: [evaluation.md](evaluation.md#reproducing-the-figures).",
-           ""]
+    out = [
+        "# Benchmark results",
+        "",
+        "Generated by `benchmarks/report.py` from `benchmarks/results/*.json`; do not edit by hand. "
+        "What each benchmark measures and how to run it: [evaluation.md](evaluation.md#reproducing-the-figures).",
+        "",
+    ]
     by_name: dict[str, list[Result]] = {}
     for r in results:
         by_name.setdefault(r.benchmark, []).append(r)

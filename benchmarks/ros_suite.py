@@ -27,6 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src" / "neb_slam_ros"))  # the ROS package is colcon-built, not pip-installed
 
 from common import record  # noqa: E402
+
 from neb_slam_ros.suite import _env, launch  # noqa: E402
 
 
@@ -41,8 +42,9 @@ def small_bag(frames: int) -> Path:
         if not (scene / "scene.json").is_file():
             generate("small", scene, progress=False)
         ds = open_dataset(scene)
-        write_bag([ds[i] for i in range(min(frames, len(ds)))], bag, BagWriteOptions(depth_encoding="32FC1"),
-                  progress=False)
+        write_bag(
+            [ds[i] for i in range(min(frames, len(ds)))], bag, BagWriteOptions(depth_encoding="32FC1"), progress=False
+        )
     return bag
 
 

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from common import fitted_tum_map, load_figures, median_ms, predicted_start, report
+
 from neb_slam_core.config_io import load_config
 from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.renderer import objective
@@ -58,6 +58,7 @@ def main() -> None:
         shares.append(float(evaluated_samples(z, px.depth_m, skip_m).float().mean()))
         values = {}
         for key, rc in render.items():
+
             def step(rc=rc):
                 block_map.zero_grad(set_to_none=True)
                 loss, _ = objective(block_map, rays, rc, None, generator=torch.Generator().manual_seed(1), z=z)
@@ -77,9 +78,12 @@ def main() -> None:
         start = predicted_start(f.T_world_cam)
         for key, rc in render.items():
             results = []
-            track_ms[key].append(median_ms(
-                lambda rc=rc: results.append(Tracker(cfg.tracking, rc, seed=cfg.seed).track(block_map, f, start)),
-                args.repeats))
+            track_ms[key].append(
+                median_ms(
+                    lambda rc=rc: results.append(Tracker(cfg.tracking, rc, seed=cfg.seed).track(block_map, f, start)),
+                    args.repeats,
+                )
+            )
             result = results[-1]
             steps[key].append(result.iterations)
             poses[key].append(result.T_world_cam)
@@ -106,9 +110,11 @@ def main() -> None:
         "mapping_rays": cfg.mapping.n_rays,
         **load_figures(),
     }
-    print(f"mapping step {figures['map_step_ms_skip']} ms skipping, {figures['map_step_ms_all']} ms with every "
-          f"sample (x{figures['map_step_ratio']}); tracking {figures['track_ms_skip']} against "
-          f"{figures['track_ms_all']} ms per frame (x{figures['track_ratio']})")
+    print(
+        f"mapping step {figures['map_step_ms_skip']} ms skipping, {figures['map_step_ms_all']} ms with every "
+        f"sample (x{figures['map_step_ratio']}); tracking {figures['track_ms_skip']} against "
+        f"{figures['track_ms_all']} ms per frame (x{figures['track_ratio']})"
+    )
     report(figures, args.json, "sample_skip")
 
 

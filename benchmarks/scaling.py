@@ -10,8 +10,8 @@ On the synthetic ``corridor`` preset (a 28 m corridor with rooms on both sides),
    fit takes no extra N_a rays from the newest block's keyframes, which only one of the maps has). Both
    maps are trained where the timed views look, as a running engine's would be: blocks allocated and
    never trained would blend untrained features into their overlap with the first block, change the
-   rendered surface and with it how many samples tracking evaluates (13 % more on the corridor),
-   which is not what more blocks cost;
+   rendered surface and with it how many samples tracking evaluates, which is not what more blocks
+   cost;
 3. time tracking of ``--track-frames`` of the first frames from perturbed poses in each map
    (``track_ms_one_block``, ``track_ms_many_blocks``), passes alternating between the two maps so that
    the machine's changing speed reaches both alike.
@@ -32,7 +32,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import copy
 import os
 import time
 from dataclasses import replace
@@ -40,16 +39,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from common import predicted_start, report
+
 from neb_slam_core.config_io import load_config
 from neb_slam_core.datasets import open_dataset
-from neb_slam_core.scene.block_map import BlockMap
-from neb_slam_core.slam import KnownPoseMapping
-from neb_slam_core.synth.generate import generate
 from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.sampling import sample_depths
+from neb_slam_core.scene.block_map import BlockMap
 from neb_slam_core.scene.freeze import frozen
+from neb_slam_core.slam import KnownPoseMapping
+from neb_slam_core.synth.generate import generate
 from neb_slam_core.tracking.gauss_newton import apply_step, damped_step, evaluate_pose, normal_equations
 from neb_slam_core.tracking.tracker import Tracker
 
@@ -62,8 +61,9 @@ def track_every_step(tracker_cfg, render_cfg, block_map, frame, T0) -> None:
     and builds the next system only after an accepted one, so how much work it does depends on how the
     map fits the frame, which differs between two maps for reasons other than their number of blocks;
     this is its most expensive case, the same work in both maps."""
-    px = sample_pixels(frame, tracker_cfg.n_rays, np.random.default_rng(0), valid_depth_only=True,
-                       border=tracker_cfg.border_px)
+    px = sample_pixels(
+        frame, tracker_cfg.n_rays, np.random.default_rng(0), valid_depth_only=True, border=tracker_cfg.border_px
+    )
     s = render_cfg.sampling
     ids = block_map.blocks_in_frustum(T0, frame.intrinsics, s.near_m, s.far_m)
     with frozen(block_map):
@@ -109,7 +109,7 @@ def main() -> None:
     scene = generate("corridor", REPO / ".cache" / "scenes" / "corridor", progress=True)
     ds = open_dataset(scene)
     frames = [ds[i] for i in range(len(ds))]
-    start = frames[:args.start_frames]
+    start = frames[: args.start_frames]
     fit_cfg = replace(cfg, mapping=replace(cfg.mapping, n_rays_newest_block=0))
 
     def build(all_blocks: bool) -> tuple[BlockMap, int]:
@@ -127,8 +127,9 @@ def main() -> None:
 
     one_map, n_start = build(all_blocks=False)
     block_map, _ = build(all_blocks=True)
-    timed = start[1::max(1, len(start) // args.track_frames)][:args.track_frames]
+    timed = start[1 :: max(1, len(start) // args.track_frames)][: args.track_frames]
     starts = [predicted_start(f.T_world_cam) for f in timed]
+
     # Passes alternate between the two maps, so that a change in the machine's speed during the run
     # (other load, clock) reaches both timings alike; each is the median over its passes.
     def fixed(block_map, frame, T0):
@@ -167,9 +168,11 @@ def main() -> None:
         "threads": torch.get_num_threads(),
         "cpus": os.cpu_count(),
     }
-    print(f"tracking per frame, every step taken: {one_ms:.1f} ms with {n_start} block(s), {many_ms:.1f} ms with "
-          f"{len(block_map)} blocks (x{many_ms / one_ms:.3f}); the tracker as it runs: "
-          f"x{figures['tracker_ratio']:.3f}; blocks in the timed frusta: {one_view} -> {many_view}")
+    print(
+        f"tracking per frame, every step taken: {one_ms:.1f} ms with {n_start} block(s), {many_ms:.1f} ms with "
+        f"{len(block_map)} blocks (x{many_ms / one_ms:.3f}); the tracker as it runs: "
+        f"x{figures['tracker_ratio']:.3f}; blocks in the timed frusta: {one_view} -> {many_view}"
+    )
     report(figures, args.json, "scaling")
 
 

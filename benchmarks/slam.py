@@ -17,8 +17,7 @@ Sequences:
 Beside those, two figures that explain the seconds per frame from one run to the next: ``loops_applied``
 with ``loop_s_per_frame`` (loop detection, fits and each applied loop's re-optimisation, per frame), and
 ``first_frame_s``, the first frame's time: the same work in every run of a sequence (map-only iterations
-on one frame), so the ratio of two runs' ``first_frame_s`` is how much faster the machine ran in one of them
-(on this shared 2-core machine: 8.4 to 18.5 s on TUM).
+on one frame), so the ratio of two runs' ``first_frame_s`` is how much faster the machine ran in one of them.
 
 The run directory (``--out``, default ``runs/bench-<sequence>-<date-time>``) keeps everything ``neb-slam run``
 writes (trajectory, plots, mesh, metrics.json). Extra arguments after ``--`` go to ``neb-slam run``.
@@ -79,8 +78,8 @@ def loop_and_speed_figures(run_dir: Path, metrics: dict) -> dict:
 
 def main() -> None:
     argv = sys.argv[1:]
-    extra = argv[argv.index("--") + 1:] if "--" in argv else []
-    argv = argv[:argv.index("--")] if "--" in argv else argv
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sequence", choices=sorted(SEQUENCES))
     p.add_argument("--config", default=None, help="config preset or file (default: tum / synthetic)")
@@ -129,7 +128,14 @@ def main() -> None:
         "cpus": os.cpu_count(),
         "run_dir": str(out),
     }
-    for key in ("accuracy_cm", "completion_cm", "completion_ratio_pct", "depth_l1_cm", "recon_floor_cm", "recon_points"):
+    for key in (
+        "accuracy_cm",
+        "completion_cm",
+        "completion_ratio_pct",
+        "depth_l1_cm",
+        "recon_floor_cm",
+        "recon_points",
+    ):
         if key in metrics:
             figures[key] = metrics[key]
     print(json.dumps(figures, indent=2))

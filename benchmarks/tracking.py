@@ -30,14 +30,19 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from common import fitted_tum_map, load_figures, median_ms, predicted_start, report
+
 from neb_slam_core.config_io import load_config
 from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.sampling import sample_depths
 from neb_slam_core.scene.freeze import frozen
-from neb_slam_core.tracking.gauss_newton import (evaluate_pose, forward_difference_gradients, normal_equations,
-                                                 spatial_gradients, spatial_gradients_autograd)
+from neb_slam_core.tracking.gauss_newton import (
+    evaluate_pose,
+    forward_difference_gradients,
+    normal_equations,
+    spatial_gradients,
+    spatial_gradients_autograd,
+)
 from neb_slam_core.tracking.tracker import Tracker
 
 
@@ -82,7 +87,8 @@ def main() -> None:
         track_ms.append(1e3 * (time.perf_counter() - t0))
         steps.append(result.iterations)
         reference = Tracker(cfg.tracking, cfg.render, seed=cfg.seed, gradients=spatial_gradients_autograd).track(
-            block_map, f, T)
+            block_map, f, T
+        )
         gaps.append(1e3 * float(np.linalg.norm(result.T_world_cam[:3, 3] - reference.T_world_cam[:3, 3])))
 
     figures = {
@@ -98,10 +104,12 @@ def main() -> None:
         "n_rays": cfg.tracking.n_rays,
         **load_figures(),
     }
-    print(f"normal equations: {figures['normal_equations_ms_closed']} ms in closed form, "
-          f"{figures['normal_equations_ms_fd']} ms by forward differences (x{figures['fd_over_closed']}), "
-          f"{figures['normal_equations_ms_autograd']} ms by autograd (x{figures['autograd_over_closed']}); "
-          f"tracking {figures['track_ms']} ms per frame")
+    print(
+        f"normal equations: {figures['normal_equations_ms_closed']} ms in closed form, "
+        f"{figures['normal_equations_ms_fd']} ms by forward differences (x{figures['fd_over_closed']}), "
+        f"{figures['normal_equations_ms_autograd']} ms by autograd (x{figures['autograd_over_closed']}); "
+        f"tracking {figures['track_ms']} ms per frame"
+    )
     report(figures, args.json, "tracking")
 
 

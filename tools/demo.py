@@ -55,8 +55,11 @@ def main() -> int:
     from neb_slam_ros.suite import launch
 
     out = args.out or REPO / time.strftime(f"runs/demo-{bag.name}-%Y%m%d-%H%M%S")
-    print(f"replaying {bag.name} through mapper + loop_closer + tracker + bag_replay (lockstep, config {args.config}); "
-          f"process logs in {out / 'logs'}", flush=True)
+    print(
+        f"replaying {bag.name} through mapper + loop_closer + tracker + bag_replay (lockstep, config {args.config}); "
+        f"process logs in {out / 'logs'}",
+        flush=True,
+    )
     result = launch(bag, out, args.config, args.count)
     m = result.metrics
     bad = {k: v for k, v in result.exit_codes.items() if v != 0}
@@ -69,14 +72,26 @@ def main() -> int:
     if "ate_rmse_cm" in m:
         print(f"  ATE RMSE            {m['ate_rmse_cm']:.3f} cm ({m.get('n_poses')} poses)")
     print(f"  blocks / parameters {m.get('n_blocks')} / {m.get('param_mb', float('nan')):.3f} MB")
-    print(f"  frames / fps        {m.get('n_frames')} / {m.get('fps', float('nan')):.3f} frames per second "
-          f"({result.wall_s:.0f} s)")
-    for name in ("trajectory.txt", "groundtruth.txt", "mesh.ply", "map.pt", "metrics.json", "trajectory.png",
-                 "ate_over_time.png"):
+    print(
+        f"  frames / fps        {m.get('n_frames')} / {m.get('fps', float('nan')):.3f} frames per second "
+        f"({result.wall_s:.0f} s)"
+    )
+    for name in (
+        "trajectory.txt",
+        "groundtruth.txt",
+        "mesh.ply",
+        "map.pt",
+        "metrics.json",
+        "trajectory.png",
+        "ate_over_time.png",
+    ):
         if (out / name).is_file():
             print(f"  {name:<19} {rel(out / name)}")
     if (scene / "mesh.ply").is_file() and args.bag == p.get_default("bag"):
-        print(f"  ground-truth mesh   {rel(scene / 'mesh.ply')}  (neb-slam eval {rel(out)} --gt-mesh {rel(scene / 'mesh.ply')})")
+        print(
+            f"  ground-truth mesh   {rel(scene / 'mesh.ply')}  "
+            f"(neb-slam eval {rel(out)} --gt-mesh {rel(scene / 'mesh.ply')})"
+        )
     if bad:
         print(f"  non-zero exits      {bad}; see {rel(out / 'logs')}", file=sys.stderr)
     print(rel(out))

@@ -30,8 +30,11 @@ def kernel_build() -> dict:
     try:
         from torch.utils.cpp_extension import BuildExtension, CppExtension
     except ImportError as exc:
-        print(f"neb_slam_core: torch is not importable here ({exc}): the C++ kernels are not built now; "
-              "they compile on first use instead", file=sys.stderr)
+        print(
+            f"neb_slam_core: torch is not importable here ({exc}): the C++ kernels are not built now; "
+            "they compile on first use instead",
+            file=sys.stderr,
+        )
         return {}
 
     class OptionalBuildExtension(BuildExtension):
@@ -42,8 +45,11 @@ def kernel_build() -> dict:
             try:
                 super().run()
             except Exception as exc:
-                print(f"neb_slam_core: building the C++ kernels failed ({type(exc).__name__}: {exc}); they "
-                      "compile on first use instead", file=sys.stderr)
+                print(
+                    f"neb_slam_core: building the C++ kernels failed ({type(exc).__name__}: {exc}); they "
+                    "compile on first use instead",
+                    file=sys.stderr,
+                )
 
     ext = _ext_helpers()
     flags = ext.compile_flags()

@@ -21,7 +21,8 @@ def test_loop_and_speed_figures(tmp_path):
         "0,1,0.0,30.0,8000.0,12.0,8042.0,1,0,1,1.0,1,\n"
         "1,2,200.0,5.0,0.0,0.0,205.0,0,,1,0.0,1,\n"
         "2,3,210.0,5.0,1100.0,11000.0,12315.0,1,,1,0.0,1,\n"
-        "3,4,190.0,5.0,0.0,0.0,195.0,0,,1,0.0,1,\n")
+        "3,4,190.0,5.0,0.0,0.0,195.0,0,,1,0.0,1,\n"
+    )
     # metrics.json's loop figures: loop work (12 + 0 + 11000 + 0) ms over 4 frames, 2 loops applied
     metrics = {"n_loops_applied": 2, "loop_ms_mean": (12.0 + 11000.0) / 4}
     figures = _bench_module().loop_and_speed_figures(tmp_path, metrics)

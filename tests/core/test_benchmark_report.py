@@ -6,7 +6,7 @@ import json
 import os
 import re
 import sys
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
@@ -27,7 +27,7 @@ def _result(folder: Path, name: str, figures: dict, stamp: dict) -> None:
 def test_record_stamps_results_and_the_json_copy(tmp_path):
     common = _module("common")
     figures = {"ate_rmse_cm": 1.5, "first_frame_s": 9.65, "n_blocks": 1}
-    now = datetime(2025, 1, 2, 3, 4, 5, tzinfo=timezone.utc)
+    now = datetime(2025, 1, 2, 3, 4, 5, tzinfo=UTC)
     copy = tmp_path / "tum.json"
     path = common.record("slam-tum", figures, copy, results_dir=tmp_path / "results", now=now)
 
@@ -53,22 +53,46 @@ def test_record_stamps_results_and_the_json_copy(tmp_path):
 
 def test_report_renders_one_table_newest_first(tmp_path):
     report = _module("report")
-    _result(tmp_path, "slam-tum-20250101-100000.json",
-            {"config": "tum", "frames": 294, "ate_rmse_cm": 1.6012, "s_per_frame": 0.63, "n_blocks": 1,
-             "param_mb": 3.556},
-            {"benchmark": "slam-tum", "commit": "abc1234", "date_utc": "2025-01-01T10:00:00Z",
-             "load_average": [1.5, 1.25, 1.0], "cpus": 2, "argv": ["tum", "--json", "tum.json"]})
-    _result(tmp_path, "slam-tum-20250103-083000.json",
-            {"config": "tum", "frames": 100, "ate_rmse_cm": 1.58, "s_per_frame": 0.71, "first_frame_s": 9.62,
-             "n_blocks": 1, "param_mb": 3.556},
-            {"benchmark": "slam-tum", "commit": "def5678-dirty", "date_utc": "2025-01-03T08:30:00Z",
-             "load_average": [2.0, 1.75, 1.5], "cpus": 2, "argv": ["tum", "--frames", "100"],
-             "first_frame_s": 9.62})
+    _result(
+        tmp_path,
+        "slam-tum-20250101-100000.json",
+        {"config": "tum", "frames": 294, "ate_rmse_cm": 1.6012, "s_per_frame": 0.63, "n_blocks": 1, "param_mb": 3.556},
+        {
+            "benchmark": "slam-tum",
+            "commit": "abc1234",
+            "date_utc": "2025-01-01T10:00:00Z",
+            "load_average": [1.5, 1.25, 1.0],
+            "cpus": 2,
+            "argv": ["tum", "--json", "tum.json"],
+        },
+    )
+    _result(
+        tmp_path,
+        "slam-tum-20250103-083000.json",
+        {
+            "config": "tum",
+            "frames": 100,
+            "ate_rmse_cm": 1.58,
+            "s_per_frame": 0.71,
+            "first_frame_s": 9.62,
+            "n_blocks": 1,
+            "param_mb": 3.556,
+        },
+        {
+            "benchmark": "slam-tum",
+            "commit": "def5678-dirty",
+            "date_utc": "2025-01-03T08:30:00Z",
+            "load_average": [2.0, 1.75, 1.5],
+            "cpus": 2,
+            "argv": ["tum", "--frames", "100"],
+            "first_frame_s": 9.62,
+        },
+    )
 
     text = report.render(report.load_results(tmp_path))
     lines = text.splitlines()
     start = lines.index("## slam-tum")
-    table = [line for line in lines[start + 1:] if line.startswith("|")]
+    table = [line for line in lines[start + 1 :] if line.startswith("|")]
     assert table == [
         "| date (UTC) | commit | load 1/5/15 min | CPUs | config | frames | ATE cm | s/frame | first frame s | blocks "
         "| MB | arguments |",

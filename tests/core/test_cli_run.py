@@ -13,7 +13,6 @@ import io
 import json
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -33,14 +32,33 @@ from neb_slam_core.slam import Slam
 from neb_slam_core.types import Intrinsics, RgbdFrame
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-RUN_FILES = ("config.yaml", "intrinsics.json", "trajectory.txt", "groundtruth.txt", "timings.csv", "map.pt",
-             "mesh.ply", "metrics.json", "trajectory.png", "ate_over_time.png", "blocks.png")
+RUN_FILES = (
+    "config.yaml",
+    "intrinsics.json",
+    "trajectory.txt",
+    "groundtruth.txt",
+    "timings.csv",
+    "map.pt",
+    "mesh.ply",
+    "metrics.json",
+    "trajectory.png",
+    "ate_over_time.png",
+    "blocks.png",
+)
 #: input frames of the shared run: --start 2 --stride 2 --frames 8
 SHARED_INDICES = list(range(2, 18, 2))
 #: a budget far below ci's for the interruption tests (they check files, not accuracy); with 3 first
 #: iterations the map has no surface yet (no mesh), with 10 it has one
-TINY = ["--set", "mapping.first_iterations=3", "tracking.iterations=2", "mapping.iterations=2",
-        "--recon-points", "2000", "--depth-views", "0"]
+TINY = [
+    "--set",
+    "mapping.first_iterations=3",
+    "tracking.iterations=2",
+    "mapping.iterations=2",
+    "--recon-points",
+    "2000",
+    "--depth-views",
+    "0",
+]
 
 
 def run_cli(argv: list[str]) -> tuple[int, str]:
@@ -55,9 +73,28 @@ def run_cli(argv: list[str]) -> tuple[int, str]:
 def shared_run(small_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "small"
     expected_cfg = load_config("ci", ["seed=3"])  # read now: the preset file may change while tests run
-    code, stdout = run_cli(["run", str(small_scene), "--config", "ci", "--out", str(out), "--start", "2",
-                            "--stride", "2", "--frames", str(len(SHARED_INDICES)), "--seed", "3",
-                            "--recon-points", "20000", "--depth-views", "10"])
+    code, stdout = run_cli(
+        [
+            "run",
+            str(small_scene),
+            "--config",
+            "ci",
+            "--out",
+            str(out),
+            "--start",
+            "2",
+            "--stride",
+            "2",
+            "--frames",
+            str(len(SHARED_INDICES)),
+            "--seed",
+            "3",
+            "--recon-points",
+            "20000",
+            "--depth-views",
+            "10",
+        ]
+    )
     return code, stdout, out, expected_cfg
 
 
@@ -104,9 +141,20 @@ def test_trajectory_has_the_input_stamps_and_starts_at_the_ground_truth(shared_r
 def test_metrics_match_the_files_they_summarise(shared_run):
     _, _, out, _ = shared_run
     m = json.loads((out / "metrics.json").read_text())
-    for key in ("ate_rmse_cm", "n_blocks", "param_mb", "s_per_frame", "track_ms_mean", "map_ms_mean",
-                "n_keyframes", "n_tracking_failures", "accuracy_cm", "completion_cm", "completion_ratio_pct",
-                "depth_l1_cm"):
+    for key in (
+        "ate_rmse_cm",
+        "n_blocks",
+        "param_mb",
+        "s_per_frame",
+        "track_ms_mean",
+        "map_ms_mean",
+        "n_keyframes",
+        "n_tracking_failures",
+        "accuracy_cm",
+        "completion_cm",
+        "completion_ratio_pct",
+        "depth_l1_cm",
+    ):
         assert key in m, key
     assert m["status"] == "complete" and m["n_frames"] == len(SHARED_INDICES)
     assert math.isfinite(m["ate_rmse_cm"])
@@ -164,7 +212,9 @@ def test_config_mesh_and_intrinsics(shared_run, small_scene):
     assert load_config(out / "config.yaml") == expected_cfg
     mesh = trimesh.load(out / "mesh.ply", force="mesh", process=False)
     assert len(mesh.faces) > 0 and np.isfinite(mesh.vertices).all()
-    assert json.loads((out / "intrinsics.json").read_text()) == json.loads((small_scene / "intrinsics.json").read_text())
+    assert json.loads((out / "intrinsics.json").read_text()) == json.loads(
+        (small_scene / "intrinsics.json").read_text()
+    )
 
 
 def test_map_continues_a_run_s_checkpoint(shared_run, small_scene, tmp_path, capsys):
@@ -173,8 +223,26 @@ def test_map_continues_a_run_s_checkpoint(shared_run, small_scene, tmp_path, cap
     _, _, shared_out, _ = shared_run
     before, _ = load_map(shared_out / "map.pt")
     out = tmp_path / "continued"
-    code, stdout = run_cli(["run", str(small_scene), "--config", "ci", "--seed", "3", "--start", "18", "--frames", "2",
-                            "--map", str(shared_out / "map.pt"), "--out", str(out), "--no-mesh", *TINY])
+    code, stdout = run_cli(
+        [
+            "run",
+            str(small_scene),
+            "--config",
+            "ci",
+            "--seed",
+            "3",
+            "--start",
+            "18",
+            "--frames",
+            "2",
+            "--map",
+            str(shared_out / "map.pt"),
+            "--out",
+            str(out),
+            "--no-mesh",
+            *TINY,
+        ]
+    )
     assert code == 0 and stdout.strip().splitlines()[-1] == str(out)
     assert f"continuing {shared_out / 'map.pt'} ({len(before)} blocks)" in capsys.readouterr().err
     after, _ = load_map(out / "map.pt")
@@ -184,8 +252,23 @@ def test_map_continues_a_run_s_checkpoint(shared_run, small_scene, tmp_path, cap
     missing = tmp_path / "no_map.pt"
     assert main(["run", str(small_scene), "--config", "ci", "--map", str(missing), "--out", str(tmp_path / "x")]) == 2
     assert str(missing) in capsys.readouterr().err
-    assert main(["run", str(small_scene), "--config", "ci", "--set", "block.edge_m=2.0", "--map",
-                 str(shared_out / "map.pt"), "--out", str(tmp_path / "y")]) == 2
+    assert (
+        main(
+            [
+                "run",
+                str(small_scene),
+                "--config",
+                "ci",
+                "--set",
+                "block.edge_m=2.0",
+                "--map",
+                str(shared_out / "map.pt"),
+                "--out",
+                str(tmp_path / "y"),
+            ]
+        )
+        == 2
+    )
     assert "block.edge_m" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
@@ -196,8 +279,21 @@ def test_map_continues_a_run_s_checkpoint(shared_run, small_scene, tmp_path, cap
 def test_ctrl_c_writes_the_frames_processed_so_far(small_scene, tmp_path, monkeypatch):
     fail_at(monkeypatch, 3, KeyboardInterrupt())
     out = tmp_path / "run"
-    code, stdout = run_cli(["run", str(small_scene), "--config", "ci", "--out", str(out), "--frames", "10", *TINY,
-                            "--set", "mapping.first_iterations=10"])
+    code, stdout = run_cli(
+        [
+            "run",
+            str(small_scene),
+            "--config",
+            "ci",
+            "--out",
+            str(out),
+            "--frames",
+            "10",
+            *TINY,
+            "--set",
+            "mapping.first_iterations=10",
+        ]
+    )
     assert code == 130
     est = read_tum_trajectory(out / "trajectory.txt")
     ds = open_dataset(small_scene)
@@ -311,8 +407,9 @@ def test_run_log_ground_truth_skips_frames_without_pose():
     for i, has_gt in enumerate((True, False, True, True)):
         T = np.eye(4)
         T[0, 3] = i
-        frame = RgbdFrame(np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32), intr, 100 * i,
-                          T if has_gt else None, index=i)
+        frame = RgbdFrame(
+            np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32), intr, 100 * i, T if has_gt else None, index=i
+        )
         run_log.begin(frame)
     gt = run_log.groundtruth(3)
     np.testing.assert_array_equal(gt.stamps_ns, [0, 200])
@@ -329,11 +426,12 @@ def test_block_allocation_plot_draws_each_block_footprint():
     centres = np.array([[1.0, 0.0, 2.0], [6.0, 0.0, 2.5]])
     fig = plot_block_allocation(traj, centres, 5.0, np.array([0, 7]), traj[[0, 2]])
     ax = fig.axes[0]
-    outlines = sorted((p for p in ax.patches if isinstance(p, Rectangle) and not p.get_fill()),
-                      key=lambda p: p.get_x())
+    outlines = sorted((p for p in ax.patches if isinstance(p, Rectangle) and not p.get_fill()), key=lambda p: p.get_x())
     # footprints on the (x, z) plane: corner = centre - edge / 2, edge 5 m
     assert [(p.get_x(), p.get_y(), p.get_width(), p.get_height()) for p in outlines] == [
-        (-1.5, -0.5, 5.0, 5.0), (3.5, 0.0, 5.0, 5.0)]
+        (-1.5, -0.5, 5.0, 5.0),
+        (3.5, 0.0, 5.0, 5.0),
+    ]
     assert ax.get_xlabel() == "x [m]" and ax.get_ylabel() == "z [m]"
     # coloured by allocating frame: the colour bar spans frames 0..7 and the two outlines differ
     assert fig.axes[1].get_ylim() == (0.0, 7.0)

@@ -9,10 +9,28 @@ import numpy as np
 import pytest
 import yaml
 
-from neb_slam_core.config import (BlockConfig, HashGridConfig, KeyframeConfig, MappingConfig, RenderConfig,
-                                  SamplingConfig, SlamConfig, TrackingConfig, config_from_dict)
-from neb_slam_core.config_io import (GRID_BACKENDS, RULES, config_names, config_problems, config_to_yaml,
-                                     dump_config, leaf_keys, load_config, validate)
+from neb_slam_core.config import (
+    BlockConfig,
+    HashGridConfig,
+    KeyframeConfig,
+    MappingConfig,
+    RenderConfig,
+    SamplingConfig,
+    SlamConfig,
+    TrackingConfig,
+    config_from_dict,
+)
+from neb_slam_core.config_io import (
+    GRID_BACKENDS,
+    RULES,
+    config_names,
+    config_problems,
+    config_to_yaml,
+    dump_config,
+    leaf_keys,
+    load_config,
+    validate,
+)
 from neb_slam_core.errors import ConfigError
 
 PRESETS = ("base", "tum", "scannet", "replica", "synthetic", "small", "ci")
@@ -55,7 +73,8 @@ def test_tum_preset_has_the_papers_tum_values():
         BASE,
         render=replace(BASE.render, truncation_m=0.05, sampling=replace(BASE.render.sampling, far_m=5.0)),
         tracking=replace(BASE.tracking, lr=1e-2),
-        mapping=replace(BASE.mapping, iterations=20))
+        mapping=replace(BASE.mapping, iterations=20),
+    )
     assert load_config("tum") == expected
 
 
@@ -91,14 +110,21 @@ def test_a_child_that_sets_one_value_keeps_the_parents_others(tmp_path):
 
 def test_relative_inherit_from_and_a_three_level_chain(tmp_path):
     # runs/child.yaml -> ../common/parent.yaml -> preset small -> preset base
-    write(tmp_path / "common" / "parent.yaml",
-          "inherit_from: small\nmapping:\n  iterations: 7\n  n_rays: 100\ntracking:\n  iterations: 3\n")
-    child = write(tmp_path / "runs" / "child.yaml",
-                  "inherit_from: ../common/parent.yaml\nmapping:\n  n_rays: 200\nseed: 5\n")
+    write(
+        tmp_path / "common" / "parent.yaml",
+        "inherit_from: small\nmapping:\n  iterations: 7\n  n_rays: 100\ntracking:\n  iterations: 3\n",
+    )
+    child = write(
+        tmp_path / "runs" / "child.yaml", "inherit_from: ../common/parent.yaml\nmapping:\n  n_rays: 200\nseed: 5\n"
+    )
     cfg = load_config(str(child))
     small = load_config("small")
-    assert cfg == replace(small, seed=5, tracking=replace(small.tracking, iterations=3),
-                          mapping=replace(small.mapping, iterations=7, n_rays=200))
+    assert cfg == replace(
+        small,
+        seed=5,
+        tracking=replace(small.tracking, iterations=3),
+        mapping=replace(small.mapping, iterations=7, n_rays=200),
+    )
 
 
 def test_a_child_may_replace_a_whole_section_value_by_value(tmp_path):
@@ -126,7 +152,9 @@ def test_a_missing_parent_names_the_including_file(tmp_path):
     with pytest.raises(ConfigError, match=r"child\.yaml: inherit_from: .*nowhere\.yaml: no such configuration file"):
         load_config(child)
     write(tmp_path / "child2.yaml", "inherit_from: no_such_preset\n")
-    with pytest.raises(ConfigError, match=r"child2\.yaml: inherit_from: unknown configuration preset 'no_such_preset'.*tum"):
+    with pytest.raises(
+        ConfigError, match=r"child2\.yaml: inherit_from: unknown configuration preset 'no_such_preset'.*tum"
+    ):
         load_config(tmp_path / "child2.yaml")
     write(tmp_path / "child3.yaml", "inherit_from: [a, b]\n")
     with pytest.raises(ConfigError, match=r"child3\.yaml: inherit_from: expected a preset name"):
@@ -143,8 +171,11 @@ def test_missing_file_unknown_preset_and_folder(tmp_path):
         load_config("tumm")
     with pytest.raises(ConfigError, match="is a folder"):
         load_config(str(tmp_path) + "/")
-    with pytest.raises(ConfigError, match=r"tum\.yaml: no such configuration file \(for the packaged preset, "
-                                          r"write just 'tum'\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"tum\.yaml: no such configuration file \(for the packaged preset, "
+        r"write just 'tum'\)",
+    ):
         load_config(tmp_path / "tum.yaml")
     with pytest.raises(ConfigError, match="expected a preset name or a YAML file path, got None"):
         load_config(None)
@@ -152,23 +183,29 @@ def test_missing_file_unknown_preset_and_folder(tmp_path):
 
 def test_unknown_key_names_the_file_and_the_dotted_key(tmp_path):
     f = write(tmp_path / "bad.yaml", "inherit_from: tum\ntracking:\n  lrr: 0.1\n")
-    with pytest.raises(ConfigError, match=r"bad\.yaml: tracking\.lrr: unknown parameter of TrackingConfig; "
-                                          r"did you mean 'lr'\?"):
+    with pytest.raises(
+        ConfigError,
+        match=r"bad\.yaml: tracking\.lrr: unknown parameter of TrackingConfig; "
+        r"did you mean 'lr'\?",
+    ):
         load_config(f)
     f = write(tmp_path / "bad2.yaml", "tracker:\n  lr: 0.1\n")
     with pytest.raises(ConfigError, match=r"bad2\.yaml: tracker: unknown parameter of SlamConfig"):
         load_config(f)
 
 
-@pytest.mark.parametrize("text, key, expected", [
-    ("mapping:\n  iterations: many\n", "mapping.iterations", "expected an integer, got 'many'"),
-    ("mapping:\n  iterations: 2.5\n", "mapping.iterations", "expected an integer, got 2.5"),
-    ("tracking:\n  lr: '0.1'\n", "tracking.lr", "expected a number, got '0.1'"),
-    ("tracking:\n  lr: true\n", "tracking.lr", "expected a number, got True"),
-    ("mapping:\n  optimise_poses: 1\n", "mapping.optimise_poses", "expected true or false, got 1"),
-    ("device: 0\n", "device", "expected a string, got 0"),
-    ("render: 5\n", "render", "expected a mapping of RenderConfig parameters"),
-])
+@pytest.mark.parametrize(
+    "text, key, expected",
+    [
+        ("mapping:\n  iterations: many\n", "mapping.iterations", "expected an integer, got 'many'"),
+        ("mapping:\n  iterations: 2.5\n", "mapping.iterations", "expected an integer, got 2.5"),
+        ("tracking:\n  lr: '0.1'\n", "tracking.lr", "expected a number, got '0.1'"),
+        ("tracking:\n  lr: true\n", "tracking.lr", "expected a number, got True"),
+        ("mapping:\n  optimise_poses: 1\n", "mapping.optimise_poses", "expected true or false, got 1"),
+        ("device: 0\n", "device", "expected a string, got 0"),
+        ("render: 5\n", "render", "expected a mapping of RenderConfig parameters"),
+    ],
+)
 def test_wrong_type_names_the_file_and_the_dotted_key(tmp_path, text, key, expected):
     f = write(tmp_path / "typed.yaml", text)
     with pytest.raises(ConfigError) as err:
@@ -176,26 +213,29 @@ def test_wrong_type_names_the_file_and_the_dotted_key(tmp_path, text, key, expec
     assert str(err.value).startswith(f"{f}: {key}: {expected}")
 
 
-@pytest.mark.parametrize("text, key", [
-    ("keyframes:\n  pixel_fraction: 1.5\n", "keyframes.pixel_fraction"),
-    ("keyframes:\n  pixel_fraction: 0.0\n", "keyframes.pixel_fraction"),
-    ("block:\n  alloc_threshold: 1.0\n", "block.alloc_threshold"),
-    ("block:\n  grid:\n    log2_hashmap_size: 25\n", "block.grid.log2_hashmap_size"),
-    ("block:\n  grid:\n    log2_hashmap_size: 9\n", "block.grid.log2_hashmap_size"),
-    ("tracking:\n  lr: 0\n", "tracking.lr"),
-    ("tracking:\n  lr: .inf\n", "tracking.lr"),
-    ("mapping:\n  grid_lr: .nan\n", "mapping.grid_lr"),
-    ("mapping:\n  iterations: 0\n", "mapping.iterations"),
-    ("tracking:\n  n_rays: -5\n", "tracking.n_rays"),
-    ("render:\n  truncation_m: 0.0\n", "render.truncation_m"),
-    ("render:\n  sampling:\n    near_m: 6.0\n", "render.sampling.far_m"),  # near == far
-    ("device: gpu\n", "device"),
-    ("device: 'cuda:'\n", "device"),
-    ("grid_backend: cuda\n", "grid_backend"),
-    ("seed: -1\n", "seed"),
-    ("one_blob:\n  period_m: 4.0\n", "one_blob.period_m"),  # must exceed the 5 m block edge
-    ("tracking:\n  min_valid_rays: 2000\n", "tracking.min_valid_rays"),  # more than n_rays
-])
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ("keyframes:\n  pixel_fraction: 1.5\n", "keyframes.pixel_fraction"),
+        ("keyframes:\n  pixel_fraction: 0.0\n", "keyframes.pixel_fraction"),
+        ("block:\n  alloc_threshold: 1.0\n", "block.alloc_threshold"),
+        ("block:\n  grid:\n    log2_hashmap_size: 25\n", "block.grid.log2_hashmap_size"),
+        ("block:\n  grid:\n    log2_hashmap_size: 9\n", "block.grid.log2_hashmap_size"),
+        ("tracking:\n  lr: 0\n", "tracking.lr"),
+        ("tracking:\n  lr: .inf\n", "tracking.lr"),
+        ("mapping:\n  grid_lr: .nan\n", "mapping.grid_lr"),
+        ("mapping:\n  iterations: 0\n", "mapping.iterations"),
+        ("tracking:\n  n_rays: -5\n", "tracking.n_rays"),
+        ("render:\n  truncation_m: 0.0\n", "render.truncation_m"),
+        ("render:\n  sampling:\n    near_m: 6.0\n", "render.sampling.far_m"),  # near == far
+        ("device: gpu\n", "device"),
+        ("device: 'cuda:'\n", "device"),
+        ("grid_backend: cuda\n", "grid_backend"),
+        ("seed: -1\n", "seed"),
+        ("one_blob:\n  period_m: 4.0\n", "one_blob.period_m"),  # must exceed the 5 m block edge
+        ("tracking:\n  min_valid_rays: 2000\n", "tracking.min_valid_rays"),  # more than n_rays
+    ],
+)
 def test_out_of_range_names_the_file_and_the_dotted_key(tmp_path, text, key):
     f = write(tmp_path / "range.yaml", text)
     with pytest.raises(ConfigError) as err:
@@ -260,8 +300,10 @@ def test_empty_files_and_sections_mean_defaults(tmp_path):
 
 def test_exponent_floats_without_a_dot_are_numbers(tmp_path):
     # plain YAML 1.1 reads 1e-3 as a string; users write it that way anyway
-    f = write(tmp_path / "exp.yaml", "tracking:\n  lr: 1e-3\nmapping:\n  grid_lr: 5E-2\n  pose_lr: 1.5e-4\n"
-                                     "render:\n  weights:\n    sdf: 1e3\n")
+    f = write(
+        tmp_path / "exp.yaml",
+        "tracking:\n  lr: 1e-3\nmapping:\n  grid_lr: 5E-2\n  pose_lr: 1.5e-4\nrender:\n  weights:\n    sdf: 1e3\n",
+    )
     cfg = load_config(f)
     assert cfg.tracking.lr == 1e-3 and cfg.mapping.grid_lr == 5e-2 and cfg.mapping.pose_lr == 1.5e-4
     assert cfg.render.weights.sdf == 1000.0 and isinstance(cfg.render.weights.sdf, float)
@@ -275,18 +317,31 @@ def test_exponent_floats_without_a_dot_are_numbers(tmp_path):
 
 def test_overrides_are_applied_last_and_parsed_as_yaml(tmp_path):
     f = write(tmp_path / "f.yaml", "inherit_from: tum\ntracking:\n  lr: 0.5\n")
-    cfg = load_config(f, ["tracking.lr=1e-2", "mapping.iterations=3", "mapping.optimise_poses=false",
-                          "device=cuda:1", "render.sampling.far_m=7", " seed = 4 "])
+    cfg = load_config(
+        f,
+        [
+            "tracking.lr=1e-2",
+            "mapping.iterations=3",
+            "mapping.optimise_poses=false",
+            "device=cuda:1",
+            "render.sampling.far_m=7",
+            " seed = 4 ",
+        ],
+    )
     tum = load_config("tum")
-    assert cfg == replace(tum, device="cuda:1", seed=4, tracking=replace(tum.tracking, lr=1e-2),
-                          mapping=replace(tum.mapping, iterations=3, optimise_poses=False),
-                          render=replace(tum.render, sampling=replace(tum.render.sampling, far_m=7.0)))
+    assert cfg == replace(
+        tum,
+        device="cuda:1",
+        seed=4,
+        tracking=replace(tum.tracking, lr=1e-2),
+        mapping=replace(tum.mapping, iterations=3, optimise_poses=False),
+        render=replace(tum.render, sampling=replace(tum.render.sampling, far_m=7.0)),
+    )
 
 
 def test_overrides_as_a_mapping():
     cfg = load_config("base", {"tracking.lr": 0.25, "mapping": {"iterations": 3}})
-    assert cfg == replace(BASE, tracking=replace(BASE.tracking, lr=0.25),
-                          mapping=replace(BASE.mapping, iterations=3))
+    assert cfg == replace(BASE, tracking=replace(BASE.tracking, lr=0.25), mapping=replace(BASE.mapping, iterations=3))
     assert load_config("base", {}) == load_config("base", []) == load_config("base") == BASE
 
 
@@ -295,8 +350,11 @@ def test_bad_overrides_name_the_override():
         load_config("tum", ["tracking.lrr=1"])
     with pytest.raises(ConfigError, match=r"override 'tracking\.lr=-1': tracking\.lr = -1\.0: expected"):
         load_config("tum", ["tracking.lr=-1"])
-    with pytest.raises(ConfigError, match=r"override 'mapping\.iterations=lots': mapping\.iterations: "
-                                          r"expected an integer"):
+    with pytest.raises(
+        ConfigError,
+        match=r"override 'mapping\.iterations=lots': mapping\.iterations: "
+        r"expected an integer",
+    ):
         load_config("tum", ["mapping.iterations=lots"])
     with pytest.raises(ConfigError, match=r"override 'tracking\.lr': expected 'dotted\.key=value'"):
         load_config("tum", ["tracking.lr"])
@@ -319,11 +377,14 @@ def test_dump_then_load_round_trips_every_preset(tmp_path, name):
 
 
 def test_dump_round_trips_awkward_floats_exactly(tmp_path):
-    cfg = replace(BASE,
-                  tracking=replace(BASE.tracking, lr=np.float64(1.0) / 3.0, failure_ratio=1e16),
-                  mapping=MappingConfig(grid_lr=0.1 + 0.2, pose_lr=2.5e-7, optimise_poses=False),
-                  render=RenderConfig(sampling=SamplingConfig(near_m=0.0, far_m=123456.789)),
-                  device="cuda:3", seed=2**40)
+    cfg = replace(
+        BASE,
+        tracking=replace(BASE.tracking, lr=np.float64(1.0) / 3.0, failure_ratio=1e16),
+        mapping=MappingConfig(grid_lr=0.1 + 0.2, pose_lr=2.5e-7, optimise_poses=False),
+        render=RenderConfig(sampling=SamplingConfig(near_m=0.0, far_m=123456.789)),
+        device="cuda:3",
+        seed=2**40,
+    )
     path = tmp_path / "awkward.yaml"
     dump_config(cfg, path)
     back = load_config(path)
@@ -332,6 +393,7 @@ def test_dump_round_trips_awkward_floats_exactly(tmp_path):
     text = path.read_text()
     assert text.endswith(config_to_yaml(cfg))
     assert text.startswith("# NeB-SLAM configuration") and "inherit_from" not in text.split("\n", 2)[2]
+
     # every parameter is written, in declaration order
     def dotted(d, prefix=""):
         for k, v in d.items():

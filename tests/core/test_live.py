@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from neb_slam_core.config_io import load_config
@@ -81,7 +82,9 @@ def test_live_slam_tracks_and_integrates_every_keyframe(frames):
     machine's speed; the ROS live test runs it)."""
     cfg = load_config("ci", overrides=["live.torch_threads=1", "live.first_iterations=200"])
     assert cfg.mapping.first_iterations == 200
+    threads = torch.get_num_threads()
     slam = LiveSlam(cfg, frames[0].T_world_cam)
+    assert torch.get_num_threads() == 1 or threads == 1
     results = []
     try:
         for f in frames:
@@ -89,6 +92,7 @@ def test_live_slam_tracks_and_integrates_every_keyframe(frames):
             assert slam.wait_integrated(timeout_s=120.0)
     finally:
         slam.close()
+    assert torch.get_num_threads() == threads  # the caller's thread count is given back
     assert slam.errors == []
     assert all(r.tracking_ok for r in results)
     # every keyframe the tracker made reached the mapper, and its final poses came back

@@ -51,8 +51,12 @@ def test_plane_across_overlapping_blocks_has_no_cracks_and_no_doubled_faces():
     border = uniq[n == 1]
     mid = mesh.vertices[border].mean(axis=1)
     lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-    on_outer = (np.isclose(mid[:, 0], lo[0]) | np.isclose(mid[:, 0], hi[0])
-                | np.isclose(mid[:, 1], lo[1]) | np.isclose(mid[:, 1], hi[1]))
+    on_outer = (
+        np.isclose(mid[:, 0], lo[0])
+        | np.isclose(mid[:, 0], hi[0])
+        | np.isclose(mid[:, 1], lo[1])
+        | np.isclose(mid[:, 1], hi[1])
+    )
     assert on_outer.all(), f"interior open edges at {mid[~on_outer][:5]}"
     # the seam region is covered
     assert lo[0] < 0.5 and hi[0] > 1.0

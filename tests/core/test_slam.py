@@ -51,8 +51,9 @@ def test_whole_small_sequence_tracks_within_bound_and_allocates_blocks(frames, f
     allocating = [r.frame_index for r in results if r.new_block_id is not None]
     assert allocating[0] == 0 and len(allocating) == len(slam.block_map)
     assert all(results[i].is_keyframe for i in allocating)  # allocating frames are keyframes
-    assert [r.frame_index for r in results if r.is_keyframe and r.new_block_id is None] == \
-        [i for i in range(0, len(frames), 5) if i not in allocating]
+    assert [r.frame_index for r in results if r.is_keyframe and r.new_block_id is None] == [
+        i for i in range(0, len(frames), 5) if i not in allocating
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +116,7 @@ def test_non_keyframe_poses_follow_corrections_of_their_keyframe(frames, full_ru
     correction[:3, :3] = Rotation.from_euler("z", 3.0, degrees=True).as_matrix()
     correction[:3, 3] = [0.05, 0.0, -0.02]
     corrected = poses.copy()
-    corrected[k:k + 2] = correction @ poses[k:k + 2]
+    corrected[k : k + 2] = correction @ poses[k : k + 2]
     try:
         slam.set_keyframe_poses(corrected)
         np.testing.assert_allclose(slam.pose_of(i), correction @ before, atol=1e-12)
@@ -144,7 +145,7 @@ def test_non_keyframes_take_their_share_of_the_next_keyframes_correction(full_ru
     drift[:3, :3] = R
     drift[:3, 3] = centre - R @ centre + [0.0, 0.02, 0.0]
     moved = linked.copy()
-    moved[k + 1:k + 3] = drift @ linked[k + 1:k + 3]
+    moved[k + 1 : k + 3] = drift @ linked[k + 1 : k + 3]
     try:
         slam.set_keyframe_poses(linked)
         rigid7, rigid5, rigid12 = slam.pose_of(7), slam.pose_of(5), slam.pose_of(12)
@@ -177,12 +178,12 @@ def test_a_loop_correction_keeps_the_loop_start_and_moves_the_rest_without_new_b
     n_blocks = len(slam.block_map)
     start = len(kfs) // 2
     moved = before.copy()
-    moved[start + 1:, :3, 3] += [0.06, 0.0, -0.03]   # what propagate_correction would hand over
+    moved[start + 1 :, :3, 3] += [0.06, 0.0, -0.03]  # what propagate_correction would hand over
     step = slam.backend.correct_loop(moved, start)
     after = kfs.poses()
-    np.testing.assert_array_equal(after[:start + 1], before[:start + 1])  # held through both stages
+    np.testing.assert_array_equal(after[: start + 1], before[: start + 1])  # held through both stages
     # the joint stage refines the moved poses, it does not undo the correction (6.7 cm)
-    assert np.abs(after[start + 1:, :3, 3] - moved[start + 1:, :3, 3]).max() < 0.02
+    assert np.abs(after[start + 1 :, :3, 3] - moved[start + 1 :, :3, 3]).max() < 0.02
     assert step.mapped and step.changed_block_ids and len(slam.block_map) == n_blocks
     # block membership is that of the new poses, and consistent both ways
     for kf in kfs.keyframes:
@@ -192,8 +193,10 @@ def test_a_loop_correction_keeps_the_loop_start_and_moves_the_rest_without_new_b
         ids = kfs.keyframes_of_block(b.block_id)
         assert ids == sorted(set(ids))
     slam.frontend.set_keyframe_poses(after)
-    assert np.allclose(slam.pose_of(slam.n_frames - 1)[:3, 3],
-                       (after[-1] @ invert(before[-1]) @ full_run[0].pose_of(slam.n_frames - 1))[:3, 3])
+    assert np.allclose(
+        slam.pose_of(slam.n_frames - 1)[:3, 3],
+        (after[-1] @ invert(before[-1]) @ full_run[0].pose_of(slam.n_frames - 1))[:3, 3],
+    )
 
 
 def test_a_run_continues_a_saved_map_and_tracks_its_first_frame_against_it(frames, full_run, tmp_path):
@@ -229,7 +232,9 @@ def test_a_map_made_with_another_configuration_is_refused_naming_the_field(full_
     from neb_slam_core.slam import load_map_for
 
     path = save_map(full_run[0].block_map, tmp_path / "map.pt")
-    with pytest.raises(DatasetError, match=r"map.pt: the map was made with block.edge_m = .*this configuration has 9.0"):
+    with pytest.raises(
+        DatasetError, match=r"map.pt: the map was made with block.edge_m = .*this configuration has 9.0"
+    ):
         load_map_for(load_config("ci", ["block.edge_m=9.0"]), path)
 
 
@@ -242,8 +247,9 @@ def test_a_trajectory_follows_moved_keyframes_with_shares_of_the_next_ones_move(
     and 0.8); frames 6-9 move rigidly with keyframes 5 and 10, which moved together; keyframes end where
     they were put."""
     stamps = np.arange(11, dtype=np.int64) * 1000
-    path = np.stack([make_pose(Rotation.from_euler("z", i, degrees=True).as_matrix(), [0.1 * i, 0.0, 0.0])
-                     for i in range(11)])
+    path = np.stack(
+        [make_pose(Rotation.from_euler("z", i, degrees=True).as_matrix(), [0.1 * i, 0.0, 0.0]) for i in range(11)]
+    )
     kf_rows = [0, 5, 10]
     kf_then = path[kf_rows]
     R = Rotation.from_euler("z", 4.0, degrees=True).as_matrix()

@@ -11,7 +11,14 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
-seen = {"pose_stamps_ns": [], "path_lengths": [], "path_stamps_ns": [], "block_ids": [], "mesh_markers": 0, "mesh_points": 0}
+seen = {
+    "pose_stamps_ns": [],
+    "path_lengths": [],
+    "path_stamps_ns": [],
+    "block_ids": [],
+    "mesh_markers": 0,
+    "mesh_points": 0,
+}
 
 
 def stamp(msg) -> int:
@@ -24,6 +31,7 @@ def main() -> None:
     state = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     stream = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(PoseStamped, "pose", lambda m: seen["pose_stamps_ns"].append(stamp(m)), stream)
+
     def on_path(m):
         seen["path_lengths"].append(len(m.poses))
         seen["path_stamps_ns"] = [stamp(p) for p in m.poses]
@@ -42,7 +50,7 @@ def main() -> None:
     print("listener ready", file=sys.stderr, flush=True)
     try:
         # in slices, as the nodes' own main does (neb_slam_ros._node_main): rclpy.spin can miss the
-        # SIGINT's wake-up of its wait set and never return (seen once in CI: the test's 30 s wait ran out)
+        # SIGINT's wake-up of its wait set and never return
         while rclpy.ok():
             rclpy.spin_once(node, timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):

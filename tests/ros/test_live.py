@@ -1,7 +1,7 @@
 """The one-process ``slam`` node live over real DDS: a synthetic bag replayed at its recorded speed (30 Hz,
-no lockstep) while tracking, mapping and loop closure run beside each other. The engine cannot track
-every frame on this machine, so frames are dropped and counted; every tracked pose carries its frame's
-stamp; the ATE over the tracked frames stays small; shutdown writes a complete run directory.
+no lockstep) while tracking, mapping and loop closure run beside each other. Tracking a frame takes
+longer than a frame period, so frames are dropped and counted; every tracked pose carries its frame's
+stamp; the ATE over the tracked frames stays bounded; shutdown writes a complete run directory.
 
 Every process of this file talks on its own random ROS_DOMAIN_ID, on localhost only.
 """
@@ -16,10 +16,12 @@ import pytest
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ignore::DeprecationWarning:lark.*")]
 
-N_FRAMES = 60  # 2 s at 30 Hz: the small scene's whole loop
-#: ATE bound over the tracked frames. The lockstep engine tracks this scene to about 0.8 cm (ci config);
-#: live, the frames it tracks lie several frames apart and the map is younger when each is tracked.
-ATE_BOUND_CM = 3.0
+#: the small scene's loop over 8 s at 30 Hz: the camera moves 1.2 cm a frame, as in TUM fr1_xyz
+N_FRAMES = 240
+#: ATE bound over the tracked frames: half the ATE of a camera left at its first pose over this loop (about
+#: 19 cm, rigidly aligned): the tracked frames are registered to the map, not left at a prediction. How
+#: close live tracking comes to the lockstep engine is what benchmarks/live.py measures.
+ATE_BOUND_CM = 10.0
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +31,7 @@ def live_bag(tmp_path_factory) -> tuple[Path, list[int]]:
     from neb_slam_core.synth.generate import generate
 
     root = tmp_path_factory.mktemp("live")
-    ds = open_dataset(generate("small", root / "scene", progress=False))
+    ds = open_dataset(generate("small", root / "scene", n_frames=N_FRAMES, progress=False))
     frames = [ds[i] for i in range(N_FRAMES)]
     bag = root / "bag"
     write_bag(frames, bag, BagWriteOptions(depth_encoding="32FC1"), progress=False)
@@ -42,24 +44,39 @@ def test_live_slam_drops_frames_and_tracks_the_rest(live_bag, ros_env, tmp_path)
 
     bag, stamps = live_bag
     out = tmp_path / "live"
-    run = launch(bag, out, "ci", one_process=True, live=True, rate=1.0, env=ros_env,
-                 extra_params={"live.torch_threads": 1, "tracking.motion_model": "stamps"})
+    # the live preset's engine options on the ci budget; the queue holds the whole replay, so that however
+    # slow the machine, the engine steps at most live.max_gap_s ahead (how far it falls behind is what
+    # the machine's speed changes)
+    live = {
+        "live.torch_threads": 1,
+        "live.max_gap_s": 0.3,
+        "tracking.motion_model": "stamps",
+        "tracking.max_extrapolation": 10.0,
+        "frame_queue": N_FRAMES,
+    }
+    run = launch(bag, out, "ci", one_process=True, live=True, rate=1.0, env=ros_env, extra_params=live)
     logs = {k: p.read_text() for k, p in run.logs.items()}
     assert run.exit_codes == {"slam": 0}, logs
     assert "Traceback" not in logs["slam"], logs["slam"]
     m = json.loads((out / "metrics.json").read_text())
     # every frame reached the node (reliable inputs); those it did not track are counted as dropped
     assert m["live"] is True and m["frames_in"] == N_FRAMES
-    assert m["frames_dropped"] > 0
-    assert m["frames_tracked"] + m["frames_dropped"] == N_FRAMES
-    assert m["engine_errors"] == []
-    # the tracked poses carry their frames' stamps, in order
+    assert m["frames_dropped"] > 0 and m["engine_errors"] == []
+    # the tracked poses carry their frames' stamps, in order, never more than live.max_gap_s apart
     est = read_tum_trajectory(out / "trajectory.txt")
-    assert len(est) == m["frames_tracked"] == m["n_frames"] >= 5
-    assert set(est.stamps_ns.tolist()) <= set(stamps) and np.all(np.diff(est.stamps_ns) > 0)
-    assert est.stamps_ns[0] == stamps[0]
+    assert len(est) == m["frames_tracked"] == m["n_frames"] == N_FRAMES - m["frames_dropped"] >= 3
+    assert set(est.stamps_ns.tolist()) <= set(stamps) and est.stamps_ns[0] == stamps[0]
+    steps_s = np.diff(est.stamps_ns) * 1e-9
+    assert np.all(steps_s > 0) and np.all(steps_s <= 0.3 + 1e-6), steps_s
     assert m["ate_rmse_cm"] <= ATE_BOUND_CM, m["ate_rmse_cm"]
     # a complete run directory
-    for name in ("trajectory.txt", "groundtruth.txt", "timings.csv", "map.pt", "mesh.ply", "config.yaml",
-                 "trajectory.png"):
+    for name in (
+        "trajectory.txt",
+        "groundtruth.txt",
+        "timings.csv",
+        "map.pt",
+        "mesh.ply",
+        "config.yaml",
+        "trajectory.png",
+    ):
         assert (out / name).is_file(), name

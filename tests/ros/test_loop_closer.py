@@ -25,10 +25,10 @@ from loop_scene import FRAME_NS, LOOP_FRAMES, pose_error, render_loop_views  # n
 
 def test_the_loop_closer_answers_every_keyframe_and_corrects_the_drifted_end(ros_env):
     rclpy = pytest.importorskip("rclpy")
+    from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Path as PathMsg
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import CameraInfo, Image
-    from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import String
 
     from neb_slam_core.geometry.se3 import make_pose
@@ -40,9 +40,25 @@ def test_the_loop_closer_answers_every_keyframe_and_corrects_the_drifted_end(ros
     gt = {f: views[f][1] for f in LOOP_FRAMES}
     poses = [drift @ gt[f] if f >= 270 else gt[f] for f in LOOP_FRAMES]
 
-    node_proc = subprocess.Popen([sys.executable, "-m", "neb_slam_ros.loop_closer", "--ros-args", "-p", "config:=ci",
-                                  "-p", "loop.temporal_window:=2", "-p", "loop.neighbours:=1"],
-                                 env=ros_env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    node_proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "neb_slam_ros.loop_closer",
+            "--ros-args",
+            "-p",
+            "config:=ci",
+            "-p",
+            "loop.temporal_window:=2",
+            "-p",
+            "loop.neighbours:=1",
+        ],
+        env=ros_env,
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
         os.environ[key] = ros_env[key]
     context = rclpy.Context()

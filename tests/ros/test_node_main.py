@@ -37,7 +37,7 @@ def test_publishing_after_shutdown_is_dropped_not_raised(ros_env, monkeypatch):
     rclpy.shutdown(context=context)
     with pytest.raises(RCLError):
         pub_plain.publish(String(data="after shutdown"))  # what killed the mapper's worker
-    pub_ours.publish(String(data="after shutdown"))       # dropped quietly
+    pub_ours.publish(String(data="after shutdown"))  # dropped quietly
     assert pub_ours.wait_for_all_acked(Duration(seconds=1.0)) is False  # close()'s wait for the final mesh
 
 

@@ -63,19 +63,26 @@ def _ate_cm(traj, frames) -> float:
     return evaluate_ate(traj, gt).rmse_cm
 
 
-def _run_suite(small_bag: Path, out: Path, env: dict[str, str], one_process: bool, mesh_period_s: float = 0.0,
-               **launch_args):
+def _run_suite(
+    small_bag: Path, out: Path, env: dict[str, str], one_process: bool, mesh_period_s: float = 0.0, **launch_args
+):
     from neb_slam_ros.suite import launch
 
     listener_json = out.parent / f"{out.name}-listener.json"
-    listener = subprocess.Popen([sys.executable, str(Path(__file__).with_name("listener.py")), str(listener_json)],
-                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    listener = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("listener.py")), str(listener_json)],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert "listener ready" in listener.stderr.readline()
         # the mesh goes out every mesh_period_s (0: never on a timer) and, whatever the period, once more at
         # shutdown, the node waiting for the listener's acknowledgement
-        run = launch(small_bag, out, CONFIG, one_process=one_process, mesh_period_s=mesh_period_s, env=env,
-                     **launch_args)
+        run = launch(
+            small_bag, out, CONFIG, one_process=one_process, mesh_period_s=mesh_period_s, env=env, **launch_args
+        )
         time.sleep(2.0)  # the last path and mesh messages reach the listener
     finally:
         listener.send_signal(signal.SIGINT)
@@ -94,11 +101,13 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
         assert "Traceback" not in text, text
     # every frame of the bag got a pose, in order: the path (transient local: complete for any subscriber)
     # holds them all; the volatile pose topic reaches the listener from the moment DDS discovery has
-    # matched it with the node that just started (after frame 0 at the latest, on this machine)
+    # matched it with the node that just started (within the first frames)
     stamps = [f.stamp_ns for f in frames]
     assert seen["path_stamps_ns"] == stamps
     assert seen["path_lengths"] and seen["path_lengths"][-1] == N_FRAMES
-    assert len(seen["pose_stamps_ns"]) >= N_FRAMES - 1 and seen["pose_stamps_ns"] == stamps[-len(seen["pose_stamps_ns"]):]
+    assert (
+        len(seen["pose_stamps_ns"]) >= N_FRAMES - 1 and seen["pose_stamps_ns"] == stamps[-len(seen["pose_stamps_ns"]) :]
+    )
     assert seen["block_ids"] == list(range(len(seen["block_ids"]))) and len(seen["block_ids"]) >= 1
     assert seen["mesh_markers"] >= 1 and seen["mesh_points"] > 0 and seen["mesh_points"] % 3 == 0
     # the written trajectory is the offline engine's (same bag, config, seed): within 10 % or 0.2 cm of its ATE
@@ -116,13 +125,17 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
     mesh = trimesh.load(run.run_dir / "mesh.ply")
     assert len(mesh.faces) > 100
     # the last mesh on the topic is the final one, mesh.ply's (its triangles whose centroid lies in a block)
-    assert 0.99 * 3 * len(mesh.faces) <= seen["mesh_points"] <= 3 * len(mesh.faces), (seen["mesh_points"], len(mesh.faces))
+    assert 0.99 * 3 * len(mesh.faces) <= seen["mesh_points"] <= 3 * len(mesh.faces), (
+        seen["mesh_points"],
+        len(mesh.faces),
+    )
     for name in ("groundtruth.txt", "metrics.json", "trajectory.png", "config.yaml"):
         assert (run.run_dir / name).is_file(), name
 
 
 def test_separate_processes_replay_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):
-    # a period well inside the run (8 frames in about 7 s from the nodes' start): timer and final meshes
+    # a period well inside the run (8 frames take several seconds from the nodes' start): timer and final
+    # meshes
     run, seen, logs = _run_suite(small_bag, tmp_path / "suite", ros_env, one_process=False, mesh_period_s=2.0)
     _check(run, seen, logs, offline, small_bag)
     # lockstep with map_sync: exactly the one-process computation, to the last bit of the float64 poses
@@ -157,8 +170,7 @@ def test_the_suite_continues_a_saved_map(small_bag, offline, ros_env, tmp_path, 
     resumed = Slam(cfg, frames[4].T_world_cam, load_map_for(cfg, map_file))
     results = [resumed.process(f) for f in frames[4:]]
     assert results[0].tracking_ok and results[0].mapped
-    run, seen, logs = _run_suite(small_bag, tmp_path / "run", ros_env, one_process, start=4, count=4,
-                                 map_file=map_file)
+    run, seen, logs = _run_suite(small_bag, tmp_path / "run", ros_env, one_process, start=4, count=4, map_file=map_file)
     assert all(code == 0 for code in run.exit_codes.values()), (run.exit_codes, logs)
     assert seen["path_stamps_ns"] == [f.stamp_ns for f in frames[4:]]
     est = read_tum_trajectory(run.run_dir / "trajectory.txt")
@@ -175,9 +187,25 @@ def test_bad_input_is_warned_about_and_skipped_and_the_tracker_keeps_running(ros
     from neb_slam_core.types import Intrinsics
     from neb_slam_ros import conversions
 
-    tracker = subprocess.Popen([sys.executable, "-m", "neb_slam_ros.tracker", "--ros-args", "-p", f"config:={CONFIG}",
-                                "-p", "reliable_inputs:=true", "-p", "warn_period_s:=0.0"],
-                               env=ros_env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    tracker = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "neb_slam_ros.tracker",
+            "--ros-args",
+            "-p",
+            f"config:={CONFIG}",
+            "-p",
+            "reliable_inputs:=true",
+            "-p",
+            "warn_period_s:=0.0",
+        ],
+        env=ros_env,
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
         os.environ[key] = ros_env[key]
     context = rclpy.Context()
@@ -211,16 +239,16 @@ def test_bad_input_is_warned_about_and_skipped_and_the_tracker_keeps_running(ros
             send(k)
         pub_info.publish(conversions.camera_info_msg(intr, None, 4 * sec, "camera"))
         time.sleep(0.5)
-        send(5, rgb_enc="rgb16")                                     # wrong encoding
-        send(6, rgb_img=np.zeros((10, 10, 3), np.uint8))              # size differs from camera info
-        send(7, depth_img=np.full((h, w), np.nan, np.float32))        # only NaN depth
-        send(8, depth_img=np.full((h, w), np.inf, np.float32))        # only Inf depth
-        send(9, depth_img=np.zeros((h, w), np.float32))               # only zeros
+        send(5, rgb_enc="rgb16")  # wrong encoding
+        send(6, rgb_img=np.zeros((10, 10, 3), np.uint8))  # size differs from camera info
+        send(7, depth_img=np.full((h, w), np.nan, np.float32))  # only NaN depth
+        send(8, depth_img=np.full((h, w), np.inf, np.float32))  # only Inf depth
+        send(9, depth_img=np.zeros((h, w), np.float32))  # only zeros
         half_nan = depth.copy()
         half_nan[:, : w // 2] = np.nan
-        send(10, depth_img=half_nan)                                  # REP 118: NaN = invalid, frame used
-        send(10)                                                      # duplicate stamp
-        send(3)                                                       # older stamp
+        send(10, depth_img=half_nan)  # REP 118: NaN = invalid, frame used
+        send(10)  # duplicate stamp
+        send(3)  # older stamp
         time.sleep(2.0)
         assert tracker.poll() is None, "the tracker died on bad input"
     finally:

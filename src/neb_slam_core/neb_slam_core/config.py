@@ -190,8 +190,11 @@ def config_from_dict(cls, data: dict, where: str = "", sources: dict[str, str] |
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise _config_error(sources, where or cls.__name__,
-                            f"expected a mapping of {cls.__name__} parameters, got {type(data).__name__} {data!r}")
+        raise _config_error(
+            sources,
+            where or cls.__name__,
+            f"expected a mapping of {cls.__name__} parameters, got {type(data).__name__} {data!r}",
+        )
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     kwargs = {}
@@ -200,8 +203,9 @@ def config_from_dict(cls, data: dict, where: str = "", sources: dict[str, str] |
         if key not in fields:
             close = difflib.get_close_matches(str(key), list(fields), n=1)
             hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise _config_error(sources, name, f"unknown parameter of {cls.__name__}{hint} "
-                                               f"(known: {', '.join(fields)})")
+            raise _config_error(
+                sources, name, f"unknown parameter of {cls.__name__}{hint} (known: {', '.join(fields)})"
+            )
         kind = hints[key]
         if dataclasses.is_dataclass(kind):
             kwargs[key] = config_from_dict(kind, value, name, sources)
@@ -240,18 +244,16 @@ class TrackingConfig:
     ``method``: ``gauss_newton`` (ours: Levenberg-Marquardt on the paper's objective, at most
     ``iterations`` steps, no learning rate; it starts with damping ``gn_damping`` times the Gauss-Newton
     matrix' diagonal and stops once a step moves the camera, and points 1 m in front of it, by less
-    than ``gn_stop_step_m``) or ``adam`` (the paper: ``iterations`` Adam steps at ``lr``). On TUM fr1_xyz
-    Gauss-Newton takes 6 steps on average to the pose that Adam approaches in 40 or more.
+    than ``gn_stop_step_m``) or ``adam`` (the paper: ``iterations`` Adam steps at ``lr``). Gauss-Newton
+    reaches in a few steps the pose that Adam approaches in tens (``benchmarks/tracking.py``).
 
     ``motion_model``: the constant-velocity prediction (:meth:`neb_slam_core.slam.Frontend.predict`):
     ``frames`` (the paper's: by frame count) or ``stamps`` (by the stamps of the last two tracked frames,
     so that dropped or failed frames between them do not matter; at most ``max_extrapolation`` times
     their motion).
 
-    ``gn_stop_step_m`` 0.5 mm: on TUM fr1_xyz the objective's minimum itself moves by 4-13 mm between
-    two draws of the ``n_rays`` pixels (frames 40-64 against a 40-frame map), so converging further
-    than that buys nothing. At 0.5 mm a frame ends 0.14-1.44 mm from its own minimum (0.09-1.26 mm at
-    0.2 mm, the previous value; 0.14-1.62 mm at 1 mm) and takes 1.3 fewer steps than at 0.2 mm.
+    ``gn_stop_step_m`` 0.5 mm: the objective's minimum itself moves by millimetres between two draws of
+    the ``n_rays`` pixels, so converging much further than that buys nothing but steps.
     """
 
     n_rays: int = 1024
@@ -319,16 +321,14 @@ class LoopConfig:
     ``depth_stride``-th pixel), starting from the geometric check's pose; it is applied when the fit
     ends below ``max_fit_rms_px`` with at least ``min_valid_share`` of the pixel/keyframe pairs valid,
     and when it moves the keyframe by at least ``min_correction_cm`` or ``min_correction_deg`` (a
-    smaller one is within what mapping refines anyway). 0.75 degree rather than 0.5: on TUM fr1_xyz,
-    five runs during this code's development applied 2 to 5 loops; beside frames 105 and 280 (1.0-1.5
-    and 3.8-4.4 cm) and one follow-up at 285 (1.8 cm), the others were turns of 0.50-0.56 degree with
-    under 1 cm (frames 60, 90, 135), each costing about 20 s of re-optimisation, for an ATE of 1.54-1.55
-    cm with 4-5 loops against 1.57-1.58 cm with 2. Then the correction is spread along the loop by
+    smaller one is within what mapping refines anyway; each applied loop costs a re-optimisation, and
+    on TUM fr1_xyz turns of about half a degree gain the ATE little). Then the correction is spread along the loop by
     a pose graph whose edges are the tracked relative poses and, beside them, each keyframe's depth
     registered (by the same objective and tests) against the ``register_neighbours`` keyframes before
     it (0: tracked edges only),
     and the map re-optimised in two stages: ``map_iterations`` with the poses fixed, then
-    ``joint_iterations`` of poses and map (the paper gives no counts; ours are measured, see README).
+    ``joint_iterations`` of poses and map (the paper gives no counts; ``benchmarks/loop_ablation.py``
+    measures ours).
     """
 
     enabled: bool = True

@@ -69,8 +69,11 @@ class _YamlLoader(yaml.SafeLoader):
             if isinstance(key_node, yaml.ScalarNode) and key_node.value != "<<":
                 if key_node.value in seen:
                     raise yaml.constructor.ConstructorError(
-                        "while reading a mapping", node.start_mark,
-                        f"found the key {key_node.value!r} twice", key_node.start_mark)
+                        "while reading a mapping",
+                        node.start_mark,
+                        f"found the key {key_node.value!r} twice",
+                        key_node.start_mark,
+                    )
                 seen.add(key_node.value)
         return super().construct_mapping(node, deep=deep)
 
@@ -80,7 +83,8 @@ class _YamlLoader(yaml.SafeLoader):
 _YamlLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
     re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
-    list("-+0123456789."))
+    list("-+0123456789."),
+)
 
 
 def _parse_yaml(text: str, label: str) -> Any:
@@ -93,8 +97,7 @@ def _parse_yaml(text: str, label: str) -> Any:
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc)
         context = getattr(exc, "context", None)
-        raise ConfigError(f"{label}: invalid YAML: {where}{problem}"
-                          f"{' (' + context + ')' if context else ''}") from None
+        raise ConfigError(f"{label}: invalid YAML: {where}{problem}{' (' + context + ')' if context else ''}") from None
     finally:
         loader.dispose()
 
@@ -119,8 +122,11 @@ def _preset_folder():
 
 def config_names() -> list[str]:
     """Names of the packaged presets (``base``, ``tum``, ...), sorted."""
-    return sorted(entry.name[: -len(".yaml")] for entry in _preset_folder().iterdir()
-                  if entry.name.endswith(".yaml") and entry.is_file())
+    return sorted(
+        entry.name[: -len(".yaml")]
+        for entry in _preset_folder().iterdir()
+        if entry.name.endswith(".yaml") and entry.is_file()
+    )
 
 
 def _is_preset_name(ref: str | Path) -> bool:
@@ -137,9 +143,11 @@ def _resolve(ref: str | Path, including: _Source | None) -> _Source:
     if _is_preset_name(ref):
         file = _preset_folder().joinpath(f"{ref}.yaml")
         if not file.is_file():
-            raise ConfigError(f"{context}unknown configuration preset {ref!r}; presets: "
-                              f"{', '.join(config_names())} (a file path must end in .yaml or name a folder, "
-                              f"e.g. ./{ref}.yaml)")
+            raise ConfigError(
+                f"{context}unknown configuration preset {ref!r}; presets: "
+                f"{', '.join(config_names())} (a file path must end in .yaml or name a folder, "
+                f"e.g. ./{ref}.yaml)"
+            )
         return _Source(f"{PRESET_PACKAGE}/{PRESET_FOLDER}/{ref}.yaml", f"preset:{ref}", _preset_folder(), file)
     if including is not None and including.identity.startswith("preset"):
         # a relative path inside a packaged preset stays inside the packaged folder
@@ -169,8 +177,9 @@ def _read_mapping(source: _Source) -> dict:
     if data is None:  # an empty file (or only comments)
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{source.label}: expected a mapping of parameters at the top level, "
-                          f"got {type(data).__name__}")
+        raise ConfigError(
+            f"{source.label}: expected a mapping of parameters at the top level, got {type(data).__name__}"
+        )
     return data
 
 
@@ -198,7 +207,7 @@ def _load_tree(source: _Source, chain: tuple[_Source, ...]) -> tuple[dict, dict[
     """``source`` merged over its ancestors, and where each dotted key was set."""
     identities = [s.identity for s in chain]
     if source.identity in identities:
-        loop = chain[identities.index(source.identity):] + (source,)
+        loop = chain[identities.index(source.identity) :] + (source,)
         raise ConfigError(f"{INHERIT_KEY} cycle: {' -> '.join(s.label for s in loop)}")
     data = _read_mapping(source)
     parent_ref = data.pop(INHERIT_KEY, None)
@@ -207,8 +216,10 @@ def _load_tree(source: _Source, chain: tuple[_Source, ...]) -> tuple[dict, dict[
         sources: dict[str, str] = {}
     else:
         if not isinstance(parent_ref, str) or not parent_ref.strip():
-            raise ConfigError(f"{source.label}: {INHERIT_KEY}: expected a preset name or a path to a YAML file "
-                              f"relative to this file, got {parent_ref!r}")
+            raise ConfigError(
+                f"{source.label}: {INHERIT_KEY}: expected a preset name or a path to a YAML file "
+                f"relative to this file, got {parent_ref!r}"
+            )
         merged, sources = _load_tree(_resolve(parent_ref.strip(), source), chain + (source,))
     _merge(merged, data, source.label, sources)
     return merged, sources
@@ -232,8 +243,9 @@ def _parse_overrides(overrides: list[str] | dict | None) -> list[tuple[str, Any,
                 raise ConfigError(f"{label}: missing value after '='")
             items.append((key.strip(), _parse_yaml(value_text, label), label))
     else:
-        raise ConfigError(f"overrides: expected a list of 'dotted.key=value' strings or a mapping, "
-                          f"got {type(overrides).__name__}")
+        raise ConfigError(
+            f"overrides: expected a list of 'dotted.key=value' strings or a mapping, got {type(overrides).__name__}"
+        )
     for key, _, label in items:
         if not _DOTTED_KEY.fullmatch(key):
             raise ConfigError(f"{label}: {key!r} is not a dotted parameter name such as 'tracking.lr'")
@@ -278,8 +290,10 @@ def dump_config(cfg: SlamConfig, path: str | Path) -> None:
         ConfigError: ``cfg`` does not validate (it could not be loaded back), or ``path`` cannot be written.
     """
     validate(cfg)
-    text = ("# NeB-SLAM configuration, fully resolved (every parameter; no inherit_from).\n"
-            "# Load it with neb_slam_core.config_io.load_config(<this file>).\n" + config_to_yaml(cfg))
+    text = (
+        "# NeB-SLAM configuration, fully resolved (every parameter; no inherit_from).\n"
+        "# Load it with neb_slam_core.config_io.load_config(<this file>).\n" + config_to_yaml(cfg)
+    )
     try:
         Path(path).write_text(text, encoding="utf-8")
     except OSError as exc:
@@ -304,8 +318,7 @@ class _Int:
     hi: int | None = None
 
     def ok(self, v: Any) -> bool:
-        return (isinstance(v, int) and not isinstance(v, bool) and v >= self.lo
-                and (self.hi is None or v <= self.hi))
+        return isinstance(v, int) and not isinstance(v, bool) and v >= self.lo and (self.hi is None or v <= self.hi)
 
     def expected(self) -> str:
         return f"an integer >= {self.lo}" if self.hi is None else f"an integer in {self.lo}..{self.hi}"
@@ -330,8 +343,7 @@ class _Num:
     def expected(self) -> str:
         if self.hi is None:
             return f"a finite number {'>' if self.lo_open else '>='} {self.lo:g}"
-        return (f"a number in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}"
-                f"{')' if self.hi_open else ']'}")
+        return f"a number in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
 
 
 @dataclass(frozen=True)
@@ -503,33 +515,71 @@ def config_problems(cfg: SlamConfig) -> list[ConfigProblem]:
             problems.append(ConfigProblem(key, _get(cfg, key), expected))
 
     b, s = cfg.block, cfg.render.sampling
-    need("block.grid.max_resolution", ("block.grid.base_resolution",),
-         lambda: b.grid.max_resolution >= b.grid.base_resolution,
-         f">= block.grid.base_resolution ({b.grid.base_resolution})")
-    need("block.blend_m", ("block.edge_m",), lambda: b.blend_m <= b.edge_m / 2,
-         f"<= half of block.edge_m ({b.edge_m / 2:g})")
-    need("one_blob.period_m", ("block.edge_m",), lambda: cfg.one_blob.period_m > b.edge_m,
-         f"> block.edge_m ({b.edge_m:g}): a block must not see the one-blob code repeat")
-    need("render.sampling.far_m", ("render.sampling.near_m",), lambda: s.far_m > s.near_m,
-         f"> render.sampling.near_m ({s.near_m:g})")
-    need("render.sampling.skip_behind_m", ("render.truncation_m",),
-         lambda: s.skip_behind_m == 0 or s.skip_behind_m >= cfg.render.truncation_m,
-         f"0 (off) or >= render.truncation_m ({cfg.render.truncation_m:g}): the SDF loss needs the samples "
-         f"up to the truncation distance behind the measured depth")
-    need("render.smoothness_step_m", ("block.edge_m",), lambda: cfg.render.smoothness_step_m < b.edge_m,
-         f"< block.edge_m ({b.edge_m:g})")
-    need("mesh.voxel_size_m", ("block.edge_m",), lambda: cfg.mesh.voxel_size_m < b.edge_m,
-         f"< block.edge_m ({b.edge_m:g})")
-    need("tracking.min_valid_rays", ("tracking.n_rays",),
-         lambda: cfg.tracking.min_valid_rays <= cfg.tracking.n_rays,
-         f"<= tracking.n_rays ({cfg.tracking.n_rays}), or every frame would fail tracking")
-    need("loop.neighbours", ("loop.temporal_window",), lambda: cfg.loop.neighbours <= cfg.loop.temporal_window,
-         f"<= loop.temporal_window ({cfg.loop.temporal_window}): the neighbours that set the threshold are adjacent keyframes")
+    need(
+        "block.grid.max_resolution",
+        ("block.grid.base_resolution",),
+        lambda: b.grid.max_resolution >= b.grid.base_resolution,
+        f">= block.grid.base_resolution ({b.grid.base_resolution})",
+    )
+    need(
+        "block.blend_m",
+        ("block.edge_m",),
+        lambda: b.blend_m <= b.edge_m / 2,
+        f"<= half of block.edge_m ({b.edge_m / 2:g})",
+    )
+    need(
+        "one_blob.period_m",
+        ("block.edge_m",),
+        lambda: cfg.one_blob.period_m > b.edge_m,
+        f"> block.edge_m ({b.edge_m:g}): a block must not see the one-blob code repeat",
+    )
+    need(
+        "render.sampling.far_m",
+        ("render.sampling.near_m",),
+        lambda: s.far_m > s.near_m,
+        f"> render.sampling.near_m ({s.near_m:g})",
+    )
+    need(
+        "render.sampling.skip_behind_m",
+        ("render.truncation_m",),
+        lambda: s.skip_behind_m == 0 or s.skip_behind_m >= cfg.render.truncation_m,
+        f"0 (off) or >= render.truncation_m ({cfg.render.truncation_m:g}): the SDF loss needs the samples "
+        f"up to the truncation distance behind the measured depth",
+    )
+    need(
+        "render.smoothness_step_m",
+        ("block.edge_m",),
+        lambda: cfg.render.smoothness_step_m < b.edge_m,
+        f"< block.edge_m ({b.edge_m:g})",
+    )
+    need(
+        "mesh.voxel_size_m",
+        ("block.edge_m",),
+        lambda: cfg.mesh.voxel_size_m < b.edge_m,
+        f"< block.edge_m ({b.edge_m:g})",
+    )
+    need(
+        "tracking.min_valid_rays",
+        ("tracking.n_rays",),
+        lambda: cfg.tracking.min_valid_rays <= cfg.tracking.n_rays,
+        f"<= tracking.n_rays ({cfg.tracking.n_rays}), or every frame would fail tracking",
+    )
+    need(
+        "loop.neighbours",
+        ("loop.temporal_window",),
+        lambda: cfg.loop.neighbours <= cfg.loop.temporal_window,
+        f"<= loop.temporal_window ({cfg.loop.temporal_window}): "
+        "the neighbours that set the threshold are adjacent keyframes",
+    )
     if cfg.grid_backend == "fast" and "block.grid.n_features_per_level" not in bad:
         from .scene.hash_grid import FAST_FEATURE_COUNTS  # imports torch: only when it matters
 
-        need("block.grid.n_features_per_level", (), lambda: b.grid.n_features_per_level in FAST_FEATURE_COUNTS,
-             f"one of {', '.join(map(str, FAST_FEATURE_COUNTS))} with grid_backend 'fast'")
+        need(
+            "block.grid.n_features_per_level",
+            (),
+            lambda: b.grid.n_features_per_level in FAST_FEATURE_COUNTS,
+            f"one of {', '.join(map(str, FAST_FEATURE_COUNTS))} with grid_backend 'fast'",
+        )
     return problems
 
 

@@ -105,6 +105,8 @@ class LiveSlam:
 
     def __init__(self, cfg: SlamConfig, T_world_first: np.ndarray | None = None, block_map: BlockMap | None = None):
         self.cfg = cfg
+        # the caller's thread tracks with live.torch_threads until close() gives it back its own count
+        self._caller_threads = torch.get_num_threads()
         if cfg.live.torch_threads > 0:
             torch.set_num_threads(cfg.live.torch_threads)
         # the C++ kernels (and what imports them lazily) are loaded before the threads start, which would
@@ -175,8 +177,11 @@ class LiveSlam:
         self._apply_updates()
         step = self.frontend.step(frame)
         if step.keyframe_id is not None:
-            handoff = _Handoff(step, self._track_map.centres().detach().cpu().double().numpy().reshape(-1, 3),
-                               np.stack(self.frontend.keyframe_poses))
+            handoff = _Handoff(
+                step,
+                self._track_map.centres().detach().cpu().double().numpy().reshape(-1, 3),
+                np.stack(self.frontend.keyframe_poses),
+            )
             with self._cond:
                 self._to_mapper.append(handoff)
                 if self.loop_closer is not None:
@@ -212,8 +217,17 @@ class LiveSlam:
         Not for a live camera: it makes the caller as slow as mapping (tests, replays that want it)."""
         with self._cond:
             done = self._cond.wait_for(
-                lambda: self.errors or (not self._to_mapper and not self._corrections and not self._to_loop
-                                        and self._integrated == len(self.frontend.keyframe_poses)), timeout_s)
+                lambda: (
+                    self.errors
+                    or (
+                        not self._to_mapper
+                        and not self._corrections
+                        and not self._to_loop
+                        and self._integrated == len(self.frontend.keyframe_poses)
+                    )
+                ),
+                timeout_s,
+            )
         return bool(done) and not self.errors
 
     def _apply_updates(self) -> None:
@@ -233,8 +247,11 @@ class LiveSlam:
         unsent: set[int] = set()
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._mapper_stopping or self._to_mapper or self._corrections
-                                    or background)
+                self._cond.wait_for(
+                    lambda background=background: (
+                        self._mapper_stopping or self._to_mapper or self._corrections or background
+                    )
+                )
                 if self._mapper_stopping and not self._to_mapper and not self._corrections:
                     return
                 handoffs = list(self._to_mapper)
@@ -248,8 +265,10 @@ class LiveSlam:
                 changed |= self._correct(corrections)
                 background[:] = [w for w in background if w.kind != "loop"]
                 start = corrections[-1][1]
-                background += [_Work("loop", self.cfg.loop.map_iterations, False),
-                               _Work("loop", self.cfg.loop.joint_iterations, True, start)]
+                background += [
+                    _Work("loop", self.cfg.loop.map_iterations, False),
+                    _Work("loop", self.cfg.loop.joint_iterations, True, start),
+                ]
             elif not handoffs and background:
                 work = background[0]
                 n = min(live.chunk_iterations, work.iterations)
@@ -267,13 +286,14 @@ class LiveSlam:
         bm, changed = self.backend.block_map, set()
         map_now = False
         for h in handoffs:
-            for centre in h.block_centres[len(bm):]:
+            for centre in h.block_centres[len(bm) :]:
                 unsent.add(bm.add_block(torch.as_tensor(centre, dtype=torch.float32)).block_id)
             s = h.step
             if s.first:
                 n0 = min(self.cfg.live.first_iterations, self.cfg.mapping.first_iterations)
-                step = self.backend.add_keyframe(s.frame, s.result.T_world_cam, s.result.frame_index, True, True,
-                                                 first_iterations=n0)
+                step = self.backend.add_keyframe(
+                    s.frame, s.result.T_world_cam, s.result.frame_index, True, True, first_iterations=n0
+                )
                 changed |= step.changed_block_ids
                 rest = self.cfg.mapping.first_iterations - n0
                 if rest > 0:
@@ -294,15 +314,20 @@ class LiveSlam:
             first = start_id + 1
             if query_id < first:
                 continue
-            merged = merge_correction(kfs.poses(), first, poses[first:query_id + 1])
+            merged = merge_correction(kfs.poses(), first, poses[first : query_id + 1])
             changed |= self.backend.correct_loop(merged, start_id, reoptimise=False).changed_block_ids
         return changed
 
     def _hand_back(self, block_ids: set[int]) -> None:
         kfs = self.backend.keyframes
         poses = kfs.poses() if len(kfs) else np.zeros((0, 4, 4))
-        update = snapshot(self.backend.block_map, block_ids, self._version + 1, poses,
-                          np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64))
+        update = snapshot(
+            self.backend.block_map,
+            block_ids,
+            self._version + 1,
+            poses,
+            np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64),
+        )
         with self._cond:
             self._version += 1
             self._updates.append(update)
@@ -323,7 +348,7 @@ class LiveSlam:
             kid = h.step.keyframe_id
             poses = h.keyframe_poses.copy()
             if refined is not None:  # the mapper's poses where it has them, the tracker's after
-                poses[:min(len(refined), len(poses))] = refined[:len(poses)]
+                poses[: min(len(refined), len(poses))] = refined[: len(poses)]
             self.loop_closer.add_keyframe(kid, h.step.frame)
             event, corrected = self.loop_closer.close(kid, poses, h.step.frame)
             if event is None:
@@ -340,12 +365,20 @@ class LiveSlam:
         arrival to the last tracked frame."""
         st = self.stats
         return {
-            "live": True, "frames_in": frames_in, "frames_tracked": self.n_frames, "frames_dropped": frames_dropped,
-            "tracked_fps": self.n_frames / max(span_s, 1e-9), "live_span_s": span_s,
-            "mapping_lag_end": st.mapping_lag, "mapping_lag_max": st.mapping_lag_max,
-            "mapping_lag_history": list(st.lag_history), "map_updates": st.map_updates,
-            "mapping_steps": st.mapping_steps, "background_chunks": st.background_chunks,
-            "first_map_wait_s": st.first_map_wait_s, "engine_errors": list(self.errors),
+            "live": True,
+            "frames_in": frames_in,
+            "frames_tracked": self.n_frames,
+            "frames_dropped": frames_dropped,
+            "tracked_fps": self.n_frames / max(span_s, 1e-9),
+            "live_span_s": span_s,
+            "mapping_lag_end": st.mapping_lag,
+            "mapping_lag_max": st.mapping_lag_max,
+            "mapping_lag_history": list(st.lag_history),
+            "map_updates": st.map_updates,
+            "mapping_steps": st.mapping_steps,
+            "background_chunks": st.background_chunks,
+            "first_map_wait_s": st.first_map_wait_s,
+            "engine_errors": list(self.errors),
         }
 
     # ------------------------------------------------------------------ shutdown
@@ -361,6 +394,7 @@ class LiveSlam:
                 with self._cond:
                     self.errors.append(f"{threading.current_thread().name}: {type(exc).__name__}: {exc}")
                     self._cond.notify_all()
+
         return run
 
     def close(self, timeout_s: float = 600.0) -> None:
@@ -380,17 +414,30 @@ class LiveSlam:
         self._apply_updates()
         with self._cond:
             self.stats.mapping_lag = len(self.frontend.keyframe_poses) - self._integrated
+        torch.set_num_threads(self._caller_threads)
 
 
-def snapshot(block_map: BlockMap, block_ids, version: int, keyframe_poses: np.ndarray,
-             keyframe_stamps_ns: np.ndarray) -> map_update.MapUpdate:
+def snapshot(
+    block_map: BlockMap, block_ids, version: int, keyframe_poses: np.ndarray, keyframe_stamps_ns: np.ndarray
+) -> map_update.MapUpdate:
     """A :class:`~neb_slam_core.scene.map_update.MapUpdate` of ``block_map`` in memory: copies of the tables
     of ``block_ids``, of the decoders and of the keyframe poses, for another thread to apply."""
     blocks = []
     for i in sorted(int(b) for b in block_ids):
         block = block_map.blocks[i]
-        blocks.append(map_update.BlockState(i, block.centre.detach().cpu().numpy().copy(),
-                                            block.grid.table.detach().cpu().reshape(-1).clone().numpy()))
+        blocks.append(
+            map_update.BlockState(
+                i,
+                block.centre.detach().cpu().numpy().copy(),
+                block.grid.table.detach().cpu().reshape(-1).clone().numpy(),
+            )
+        )
     decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().clone().numpy()
-    return map_update.MapUpdate(version, -1, blocks, decoders, np.asarray(keyframe_stamps_ns, dtype=np.int64),
-                                np.array(keyframe_poses, dtype=np.float64))
+    return map_update.MapUpdate(
+        version,
+        -1,
+        blocks,
+        decoders,
+        np.asarray(keyframe_stamps_ns, dtype=np.int64),
+        np.array(keyframe_poses, dtype=np.float64),
+    )

@@ -23,8 +23,9 @@ from .scene.block_map import BlockMap
 
 
 @torch.no_grad()
-def extract_mesh(block_map: BlockMap, cfg: MeshConfig, observed_points: np.ndarray | None = None,
-                 progress: bool = False) -> trimesh.Trimesh:
+def extract_mesh(
+    block_map: BlockMap, cfg: MeshConfig, observed_points: np.ndarray | None = None, progress: bool = False
+) -> trimesh.Trimesh:
     """The zero level set of the map's SDF as a coloured triangle mesh (world frame, metres).
 
     Args:
@@ -70,8 +71,9 @@ def extract_mesh(block_map: BlockMap, cfg: MeshConfig, observed_points: np.ndarr
         if vol[cell_ok].min() > 0 or vol[cell_ok].max() < 0:
             continue
         try:
-            verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(v, v, v),
-                                                gradient_direction="ascent", allow_degenerate=False)
+            verts, faces, _, _ = marching_cubes(
+                vol, level=0.0, spacing=(v, v, v), gradient_direction="ascent", allow_degenerate=False
+            )
         except (ValueError, RuntimeError):  # no crossing at all
             continue
         # keep triangles of cells whose 8 corners all carry a value (a triangle lies inside its cell)
@@ -93,8 +95,9 @@ def extract_mesh(block_map: BlockMap, cfg: MeshConfig, observed_points: np.ndarr
     return mesh
 
 
-def _near_observations(observed_keys: np.ndarray | None, lo: np.ndarray, shape: tuple[int, int, int],
-                       radius_voxels: int) -> np.ndarray:
+def _near_observations(
+    observed_keys: np.ndarray | None, lo: np.ndarray, shape: tuple[int, int, int], radius_voxels: int
+) -> np.ndarray:
     """``shape`` bool grid: lattice points within ``radius_voxels`` (Chebyshev) of an observed voxel."""
     if observed_keys is None:
         return np.ones(shape, dtype=bool)
@@ -121,7 +124,7 @@ def _query_sdf(block_map: BlockMap, points: np.ndarray, batch: int) -> tuple[np.
     dev = block_map.device
     sdf, valid = [], []
     for s in range(0, len(points), batch):
-        p = torch.as_tensor(points[s:s + batch], dtype=torch.float32, device=dev)
+        p = torch.as_tensor(points[s : s + batch], dtype=torch.float32, device=dev)
         q = block_map.query(p, with_colour=False)
         sdf.append(q.sdf.cpu().numpy())
         valid.append(q.valid.cpu().numpy())
@@ -132,7 +135,7 @@ def _query_colours(block_map: BlockMap, points: np.ndarray, batch: int) -> np.nd
     dev = block_map.device
     out = []
     for s in range(0, len(points), batch):
-        p = torch.as_tensor(points[s:s + batch], dtype=torch.float32, device=dev)
+        p = torch.as_tensor(points[s : s + batch], dtype=torch.float32, device=dev)
         out.append(block_map.query(p).rgb.cpu().numpy())
     rgb = (np.clip(np.concatenate(out), 0, 1) * 255).round().astype(np.uint8)
     return np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)

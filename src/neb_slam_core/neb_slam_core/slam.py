@@ -48,8 +48,9 @@ from .types import LoopEvent, RgbdFrame, StepResult, StepTimings
 
 def new_block_map(cfg: SlamConfig) -> BlockMap:
     """The empty map of an engine with ``cfg`` (each process of a split engine makes its own, identical)."""
-    return BlockMap(cfg.block, cfg.one_blob, cfg.decoder, grid_backend=cfg.grid_backend,
-                    seed=cfg.seed).to(torch.device(cfg.device))
+    return BlockMap(cfg.block, cfg.one_blob, cfg.decoder, grid_backend=cfg.grid_backend, seed=cfg.seed).to(
+        torch.device(cfg.device)
+    )
 
 
 def load_map_for(cfg: SlamConfig, path) -> BlockMap:
@@ -65,20 +66,31 @@ def load_map_for(cfg: SlamConfig, path) -> BlockMap:
     from .scene.persistence import load_map
 
     block_map, _ = load_map(path, torch.device(cfg.device), cfg.grid_backend)
-    for section, stored in (("block", block_map.block_cfg), ("one_blob", block_map.blob_cfg),
-                            ("decoder", block_map.decoder_cfg)):
+    for section, stored in (
+        ("block", block_map.block_cfg),
+        ("one_blob", block_map.blob_cfg),
+        ("decoder", block_map.decoder_cfg),
+    ):
         mine, theirs = config_to_dict(getattr(cfg, section)), config_to_dict(stored)
         for key in sorted(set(mine) | set(theirs)):
             if mine.get(key) != theirs.get(key):
-                raise DatasetError(path, f"the map was made with {section}.{key} = {theirs.get(key)!r}, this "
-                                         f"configuration has {mine.get(key)!r}: run with the map's configuration")
+                raise DatasetError(
+                    path,
+                    f"the map was made with {section}.{key} = {theirs.get(key)!r}, this "
+                    f"configuration has {mine.get(key)!r}: run with the map's configuration",
+                )
     if len(block_map) == 0:
         raise DatasetError(path, "the map has no blocks")
     return block_map
 
 
-def frame_pose(T_world_kf: np.ndarray, T_kf_cam: np.ndarray, share=0.0,
-               T_world_next: np.ndarray | None = None, T_kf_next: np.ndarray | None = None) -> np.ndarray:
+def frame_pose(
+    T_world_kf: np.ndarray,
+    T_kf_cam: np.ndarray,
+    share=0.0,
+    T_world_next: np.ndarray | None = None,
+    T_kf_next: np.ndarray | None = None,
+) -> np.ndarray:
     """The pose of a frame kept relative to its keyframe (``T_kf_cam``), the keyframe now at ``T_world_kf``.
 
     With the next keyframe (now at ``T_world_next``; ``T_kf_next``: where tracking linked it from this
@@ -94,8 +106,14 @@ def frame_pose(T_world_kf: np.ndarray, T_kf_cam: np.ndarray, share=0.0,
     return interpolate_correction(drift, T[..., :3, 3], share) @ T
 
 
-def frames_with_keyframes(rows: np.ndarray, k: np.ndarray, T_kf_cam: np.ndarray, keyframe_poses: np.ndarray,
-                          keyframe_rows: np.ndarray, links: np.ndarray) -> np.ndarray:
+def frames_with_keyframes(
+    rows: np.ndarray,
+    k: np.ndarray,
+    T_kf_cam: np.ndarray,
+    keyframe_poses: np.ndarray,
+    keyframe_rows: np.ndarray,
+    links: np.ndarray,
+) -> np.ndarray:
     """:func:`frame_pose` of many frames at once: the frames at rows ``rows`` (F,) of their sequence, kept
     relative to keyframes ``k`` (F,) by ``T_kf_cam`` (F, 4, 4). Keyframe ``j`` is now at
     ``keyframe_poses[j]``, sits at row ``keyframe_rows[j]`` (-1: unknown, so the frames before it take no
@@ -111,8 +129,9 @@ def frames_with_keyframes(rows: np.ndarray, k: np.ndarray, T_kf_cam: np.ndarray,
     return frame_pose(keyframe_poses[k], T_kf_cam, share, T_world_next, T_kf_next)
 
 
-def corrected_trajectory(stamps_ns: np.ndarray, poses: np.ndarray, keyframe_stamps_ns: np.ndarray,
-                         keyframe_poses: np.ndarray) -> Trajectory:
+def corrected_trajectory(
+    stamps_ns: np.ndarray, poses: np.ndarray, keyframe_stamps_ns: np.ndarray, keyframe_poses: np.ndarray
+) -> Trajectory:
     """A trajectory computed with earlier keyframe poses, after the keyframes moved to ``keyframe_poses``
     ``(K, 4, 4)`` (the keyframes are the frames with stamps ``keyframe_stamps_ns``, increasing): every
     frame follows the latest keyframe at or before it by :func:`frame_pose`, its place between that
@@ -237,8 +256,13 @@ class Frontend:
         if k + 1 == len(self.keyframe_poses):
             return frame_pose(self.keyframe_poses[k], f.T_kf_cam)
         first, last = self._keyframe_frames[k], self._keyframe_frames[k + 1]
-        return frame_pose(self.keyframe_poses[k], f.T_kf_cam, (i - first) / (last - first),
-                          self.keyframe_poses[k + 1], self._keyframe_links[k + 1])
+        return frame_pose(
+            self.keyframe_poses[k],
+            f.T_kf_cam,
+            (i - first) / (last - first),
+            self.keyframe_poses[k + 1],
+            self._keyframe_links[k + 1],
+        )
 
     def keyframe_of(self, i: int) -> int:
         """Id of the keyframe that frame ``i``'s pose is kept relative to."""
@@ -249,9 +273,14 @@ class Frontend:
         tracker publishes this after every frame)."""
         if not self._frames:
             return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
-        poses = frames_with_keyframes(np.arange(self.n_frames), np.array([f.keyframe_id for f in self._frames]),
-                                      np.stack([f.T_kf_cam for f in self._frames]), np.stack(self.keyframe_poses),
-                                      np.array(self._keyframe_frames), np.stack(self._keyframe_links))
+        poses = frames_with_keyframes(
+            np.arange(self.n_frames),
+            np.array([f.keyframe_id for f in self._frames]),
+            np.stack([f.T_kf_cam for f in self._frames]),
+            np.stack(self.keyframe_poses),
+            np.array(self._keyframe_frames),
+            np.stack(self._keyframe_links),
+        )
         return Trajectory(np.array([f.stamp_ns for f in self._frames]), poses)
 
     def set_keyframe_poses(self, poses: np.ndarray) -> None:
@@ -311,9 +340,19 @@ class Frontend:
         keyframe_id = self._add_keyframe(T) if is_keyframe else None
         self._record(frame.stamp_ns, T)
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
-        result = StepResult(index, frame.stamp_ns, T.copy(), is_keyframe,
-                            None if new_block is None else new_block.block_id, tau, ok, reason, False,
-                            len(self.block_map), timings)
+        result = StepResult(
+            index,
+            frame.stamp_ns,
+            T.copy(),
+            is_keyframe,
+            None if new_block is None else new_block.block_id,
+            tau,
+            ok,
+            reason,
+            False,
+            len(self.block_map),
+            timings,
+        )
         return FrontendStep(result, frame, keyframe_id, map_now, False)
 
     @property
@@ -364,8 +403,19 @@ class Frontend:
         self._ok_streak = 1
         self._tracked = [0]
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
-        result = StepResult(0, frame.stamp_ns, T.copy(), True, None if new_block is None else new_block.block_id,
-                            tau, True, "", False, len(self.block_map), timings)
+        result = StepResult(
+            0,
+            frame.stamp_ns,
+            T.copy(),
+            True,
+            None if new_block is None else new_block.block_id,
+            tau,
+            True,
+            "",
+            False,
+            len(self.block_map),
+            timings,
+        )
         return FrontendStep(result, frame, keyframe_id, True, True)
 
     def _tracking_ok(self, tracked) -> tuple[bool, str]:
@@ -378,9 +428,11 @@ class Frontend:
             level = float(np.median(self._residuals[-30:]))
             limit = max(c.failure_ratio * level, c.failure_min_residual_m)
             if tracked.depth_residual_m > limit:
-                return False, (f"depth residual {100 * tracked.depth_residual_m:.1f} cm is above {100 * limit:.1f} cm "
-                               f"({c.failure_ratio:g} x its running level {100 * level:.2f} cm, at least "
-                               f"{100 * c.failure_min_residual_m:.1f} cm)")
+                return False, (
+                    f"depth residual {100 * tracked.depth_residual_m:.1f} cm is above {100 * limit:.1f} cm "
+                    f"({c.failure_ratio:g} x its running level {100 * level:.2f} cm, at least "
+                    f"{100 * c.failure_min_residual_m:.1f} cm)"
+                )
         self._residuals.append(tracked.depth_residual_m)
         return True, ""
 
@@ -392,8 +444,9 @@ class Frontend:
         pts = pts[self.rng.choice(len(pts), n, replace=False)]
         s = self.cfg.render.sampling
         ids = self.block_map.blocks_in_frustum(T, frame.intrinsics, s.near_m, s.far_m)
-        alloc = self.block_map.allocate_if_needed(torch.as_tensor(pts, dtype=torch.float32,
-                                                                  device=self.block_map.device), ids)
+        alloc = self.block_map.allocate_if_needed(
+            torch.as_tensor(pts, dtype=torch.float32, device=self.block_map.device), ids
+        )
         return alloc.block, alloc.tau
 
     def _add_keyframe(self, T: np.ndarray) -> int:
@@ -427,8 +480,15 @@ class Backend:
         self.keyframes = KeyframeStore(cfg.keyframes.pixel_fraction, seed=cfg.seed + 1, device=block_map.device)
         self.mapper = Mapper(block_map, self.keyframes, cfg.mapping, cfg.render, seed=cfg.seed + 3)
 
-    def add_keyframe(self, frame: RgbdFrame, T_world_cam: np.ndarray, frame_index: int, map_now: bool,
-                     first: bool = False, first_iterations: int | None = None) -> MappingStep:
+    def add_keyframe(
+        self,
+        frame: RgbdFrame,
+        T_world_cam: np.ndarray,
+        frame_index: int,
+        map_now: bool,
+        first: bool = False,
+        first_iterations: int | None = None,
+    ) -> MappingStep:
         """Store keyframe ``frame`` (rectified) at ``T_world_cam``; then initialise the map on it
         (``first``: ``first_iterations`` map-only steps on all its pixels, ``mapping.first_iterations`` when
         None) or run a joint optimisation step (``map_now``)."""
@@ -439,7 +499,8 @@ class Backend:
         t0 = time.perf_counter()
         if first:
             rays = all_pixels(frame, device=self.block_map.device).to_world(
-                torch.as_tensor(T_world_cam, dtype=torch.float32))
+                torch.as_tensor(T_world_cam, dtype=torch.float32)
+            )
             n = self.cfg.mapping.first_iterations if first_iterations is None else first_iterations
             res = self.mapper.optimise_on_rays(rays, n)
         else:
@@ -464,15 +525,19 @@ class Backend:
         ``reoptimise`` the caller runs the two stages itself (in chunks, between keyframes)."""
         t0 = time.perf_counter()
         self.keyframes.set_poses(poses)
-        for kf in self.keyframes.keyframes[start_id + 1:]:
+        for kf in self.keyframes.keyframes[start_id + 1 :]:
             self._assign_blocks(kf)
         if not reoptimise:
             return MappingStep(self.keyframes[len(self.keyframes) - 1], False, 1e3 * (time.perf_counter() - t0))
         c = self.cfg.loop
         first = self.mapper.optimise(c.map_iterations, optimise_poses=False)
         second = self.mapper.optimise(c.joint_iterations, optimise_poses=True, fixed_until=start_id)
-        return MappingStep(self.keyframes[len(self.keyframes) - 1], True, 1e3 * (time.perf_counter() - t0),
-                           first.changed_block_ids | second.changed_block_ids)
+        return MappingStep(
+            self.keyframes[len(self.keyframes) - 1],
+            True,
+            1e3 * (time.perf_counter() - t0),
+            first.changed_block_ids | second.changed_block_ids,
+        )
 
     def observed_points(self, rng: np.random.Generator, max_points: int = 2_000_000) -> np.ndarray:
         """World points of all keyframes' kept pixels (for mesh culling), float64 ``(K, 3)``."""
@@ -543,8 +608,9 @@ class KnownPoseMapping:
 class Slam:
     """NeB-SLAM engine for one RGB-D stream: a frontend and a backend on one block map."""
 
-    def __init__(self, cfg: SlamConfig = SlamConfig(), T_world_first: np.ndarray | None = None,
-                 block_map: BlockMap | None = None):
+    def __init__(
+        self, cfg: SlamConfig = SlamConfig(), T_world_first: np.ndarray | None = None, block_map: BlockMap | None = None
+    ):
         """An engine starting from ``T_world_first`` (identity when omitted) on an empty map, or on
         ``block_map`` (a previous run's, :func:`load_map_for`) when one is given: the first frame is
         then tracked against it, and blocks are added where it does not reach."""
@@ -593,8 +659,9 @@ class Slam:
         step = self.frontend.step(frame)
         result = step.result
         if step.keyframe_id is not None:
-            mapping = self.backend.add_keyframe(step.frame, result.T_world_cam, result.frame_index, step.map_now,
-                                                step.first)
+            mapping = self.backend.add_keyframe(
+                step.frame, result.T_world_cam, result.frame_index, step.map_now, step.first
+            )
             assert mapping.keyframe.keyframe_id == step.keyframe_id, "frontend and backend keyframes diverged"
             if mapping.mapped:
                 result.mapped = True

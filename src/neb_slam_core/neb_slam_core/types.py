@@ -28,7 +28,7 @@ class Intrinsics:
         """The 3x3 camera matrix (float64)."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """The same camera for an image resized to ``width`` x ``height``."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
@@ -68,7 +68,9 @@ class RgbdFrame:
                 f"RgbdFrame: rgb must be ({h}, {w}, 3) uint8 to match depth, got {self.rgb.shape} {self.rgb.dtype}"
             )
         if self.depth_m.dtype != np.float32 or self.depth_m.ndim != 2:
-            raise ValueError(f"RgbdFrame: depth_m must be (H, W) float32, got {self.depth_m.shape} {self.depth_m.dtype}")
+            raise ValueError(
+                f"RgbdFrame: depth_m must be (H, W) float32, got {self.depth_m.shape} {self.depth_m.dtype}"
+            )
         if (w, h) != (self.intrinsics.width, self.intrinsics.height):
             raise ValueError(
                 f"RgbdFrame: image is {w}x{h} but intrinsics are for {self.intrinsics.width}x{self.intrinsics.height}"
@@ -120,9 +122,17 @@ class LoopEvent:
         return min(self.loop_ids)
 
     def as_dict(self) -> dict:
-        return {"query_keyframe": self.query_id, "loop_keyframes": list(self.loop_ids), "score": self.score,
-                "applied": self.applied, "reason": self.reason, "correction_cm": self.correction_cm,
-                "correction_deg": self.correction_deg, "rms_px_start": self.rms_px_start, "rms_px": self.rms_px}
+        return {
+            "query_keyframe": self.query_id,
+            "loop_keyframes": list(self.loop_ids),
+            "score": self.score,
+            "applied": self.applied,
+            "reason": self.reason,
+            "correction_cm": self.correction_cm,
+            "correction_deg": self.correction_deg,
+            "rms_px_start": self.rms_px_start,
+            "rms_px": self.rms_px,
+        }
 
 
 @dataclass

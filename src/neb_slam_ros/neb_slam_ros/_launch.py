@@ -1,6 +1,6 @@
 """The node executables' entry points (``ros2 run neb_slam_ros <node>``).
 
-A node's module imports torch, rclpy and the engine, which takes 1-2 s before its ``main()`` can take
+A node's module imports torch, rclpy and the engine, which takes seconds before its ``main()`` can take
 over Ctrl-C and SIGTERM (``_node_main.run_nodes``). Started from here, a stop that arrives during those
 imports also ends the process with status 0 and one line, instead of a KeyboardInterrupt traceback and
 status 130: this module imports nothing heavy, installs a handler that exits, then imports the node's
@@ -19,8 +19,11 @@ NODES = ("tracker", "mapper", "loop_closer", "bag_replay", "slam")
 
 def _run(node: str) -> int:
     def stop_during_start_up(signum, frame):
-        print(f"[INFO] neb_slam {node}: stopped during start-up ({signal.Signals(signum).name})",
-              file=sys.stderr, flush=True)
+        print(
+            f"[INFO] neb_slam {node}: stopped during start-up ({signal.Signals(signum).name})",
+            file=sys.stderr,
+            flush=True,
+        )
         raise SystemExit(0)
 
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -49,6 +49,7 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -
 def _stop_on_signals(stop: threading.Event) -> dict:
     """SIGINT and SIGTERM set ``stop`` (once: then a second SIGINT raises KeyboardInterrupt and a second
     SIGTERM ends the process); returns the previous handlers."""
+
     def on_signal(signum, frame):
         stop.set()
         signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -68,8 +69,9 @@ def request_stop() -> None:
     _stop.set()
 
 
-def run_nodes(makers: Sequence[Callable[[], Node | None]], args: Sequence[str] | None = None,
-              multi_threaded: bool = True) -> int:
+def run_nodes(
+    makers: Sequence[Callable[[], Node | None]], args: Sequence[str] | None = None, multi_threaded: bool = True
+) -> int:
     """Run several nodes in one process on one executor (multi-threaded by default); a maker may return
     None (that node is not wanted, e.g. no bag to replay)."""
     _stop.clear()

@@ -58,7 +58,7 @@ class ReplayOptions:
         "count": "frames to play (0: all)",
         "loop": "start over at the end instead of stopping",
         "wait_for_subscribers_s": "wait this long for the tracker's subscriptions (and, in lockstep, its pose "
-                                  "publisher) before the first frame",
+        "publisher) before the first frame",
         "depth_scale": "metres per unit of the bag's 16UC1 depth",
         "camera_frame_id": "frame_id of the published images",
         "world_frame_id": "frame_id of the published ground-truth poses",
@@ -97,8 +97,10 @@ class BagReplayNode(NebNode):
         if self.opt.lockstep:
             self.create_subscription(PoseStamped, "pose", self._on_pose, qos.stream())
         self.start_worker()
-        self.get_logger().info(f"neb_slam bag_replay started: {self.opt.bag}, frames {self.indices.start}.."
-                               f"{self.indices.stop - 1} of {n}, rate {self.opt.rate:g}, lockstep {self.opt.lockstep}")
+        self.get_logger().info(
+            f"neb_slam bag_replay started: {self.opt.bag}, frames {self.indices.start}.."
+            f"{self.indices.stop - 1} of {n}, rate {self.opt.rate:g}, lockstep {self.opt.lockstep}"
+        )
 
     def _on_pose(self, msg: PoseStamped) -> None:
         with self.cond:
@@ -111,8 +113,10 @@ class BagReplayNode(NebNode):
             while self._last_pose_ns < stamp_ns and not self.stopping:
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    self.get_logger().warning(f"lockstep: no pose for frame {stamp_ns} within "
-                                              f"{self.opt.lockstep_timeout_s:g} s (skipped by the tracker?): going on")
+                    self.get_logger().warning(
+                        f"lockstep: no pose for frame {stamp_ns} within "
+                        f"{self.opt.lockstep_timeout_s:g} s (skipped by the tracker?): going on"
+                    )
                     return
                 self.cond.wait(min(left, 0.5))
 
@@ -122,13 +126,15 @@ class BagReplayNode(NebNode):
         deadline = time.monotonic() + self.opt.wait_for_subscribers_s
         pubs = (self.pub_rgb, self.pub_depth, self.pub_info)
         while not self.stopping and time.monotonic() < deadline:
-            if all(p.get_subscription_count() > 0 for p in pubs) and \
-                    (not self.opt.lockstep or self.count_publishers(self.resolve_topic_name("pose")) > 0):
+            if all(p.get_subscription_count() > 0 for p in pubs) and (
+                not self.opt.lockstep or self.count_publishers(self.resolve_topic_name("pose")) > 0
+            ):
                 return
             self.wait_stopping(0.1)
         if not self.stopping:
-            self.get_logger().warning(f"no tracker subscribed after {self.opt.wait_for_subscribers_s:g} s: "
-                                      "publishing anyway")
+            self.get_logger().warning(
+                f"no tracker subscribed after {self.opt.wait_for_subscribers_s:g} s: publishing anyway"
+            )
 
     def work_loop(self) -> None:
         """The replay (the worker thread): the bag's frames at ``rate``, then the process ends."""
@@ -166,7 +172,9 @@ class BagReplayNode(NebNode):
             self.pub_clock.publish(Clock(clock=conversions.to_time(ns)))
             if frame.T_world_cam is not None:
                 self.pub_gt.publish(conversions.pose_msg(frame.T_world_cam, ns, world))
-            self.pub_info.publish(conversions.camera_info_msg(frame.intrinsics, frame.extras.get("distortion"), ns, camera))
+            self.pub_info.publish(
+                conversions.camera_info_msg(frame.intrinsics, frame.extras.get("distortion"), ns, camera)
+            )
             self.pub_depth.publish(conversions.depth_msg(frame.depth_m, ns, camera))
             self.pub_rgb.publish(conversions.rgb_msg(frame.rgb, ns, camera))
             self.n_published += 1

@@ -43,9 +43,9 @@ class InputOptions:
         "sync_slop_s": "colour and depth are paired by stamp: exact, or nearest within this",
         "reliable_inputs": "camera subscriptions reliable (lossless replay) instead of sensor-data QoS",
         "frame_queue": "frames kept while the engine is busy (older ones are dropped, with a warning); a live "
-                       "engine catching up after a wait tracks from these (live.max_gap_s)",
+        "engine catching up after a wait tracks from these (live.max_gap_s)",
         "ground_truth_topic": "PoseStamped topic with the camera's ground truth (e.g. ground_truth/pose): the "
-                              "first frame starts from its pose; empty: from the identity",
+        "first frame starts from its pose; empty: from the identity",
         "warn_period_s": "throttle of repeated input warnings",
     }
 
@@ -116,8 +116,11 @@ class CameraInput:
             if len(self._queue) > self.opt.frame_queue:
                 self._queue.popleft()
                 self.n_dropped += 1
-                self.warnings.warn("queue", f"{self.node.get_name()} is behind the input: oldest queued frame "
-                                            f"dropped ({self.n_dropped} dropped)")
+                self.warnings.warn(
+                    "queue",
+                    f"{self.node.get_name()} is behind the input: oldest queued frame "
+                    f"dropped ({self.n_dropped} dropped)",
+                )
             self._cond.notify_all()
 
     @property
@@ -182,24 +185,29 @@ class CameraInput:
             self._held += pairs
             while len(self._held) > self.HELD_FOR_CAMERA_INFO:
                 pair = self._held.pop(0)
-                self.warnings.warn("no_info", f"{self.topics[1]}: no camera info received yet on {self.topics[2]}: "
-                                              f"frame {pair.stamp_ns} skipped")
+                self.warnings.warn(
+                    "no_info",
+                    f"{self.topics[1]}: no camera info received yet on {self.topics[2]}: frame {pair.stamp_ns} skipped",
+                )
             return
         self._accept(pairs)
 
     def _accept(self, pairs) -> None:
         for pair in pairs:
             try:
-                frame, n_nan = conversions.frame_from_msgs(pair.rgb, pair.depth, self._camera, self.opt.depth_scale,
-                                                           self.topics, self.n_accepted)
+                frame, n_nan = conversions.frame_from_msgs(
+                    pair.rgb, pair.depth, self._camera, self.opt.depth_scale, self.topics, self.n_accepted
+                )
             except conversions.InputError as exc:
                 self.warnings.warn(f"{exc.topic}:{exc.problem[:40]}", f"{exc}: frame {pair.stamp_ns} skipped")
                 continue
             if n_nan and not self._told_nan:
                 # NaN is how 32FC1 depth marks "no reading" (REP 118): normal, so said once, not warned
                 self._told_nan = True
-                self.node.get_logger().info(f"{self.topics[1]}: {n_nan} depth pixels NaN or Inf in frame "
-                                            f"{frame.stamp_ns}: read as invalid (REP 118), here and from now on")
+                self.node.get_logger().info(
+                    f"{self.topics[1]}: {n_nan} depth pixels NaN or Inf in frame "
+                    f"{frame.stamp_ns}: read as invalid (REP 118), here and from now on"
+                )
             self.n_accepted += 1
             self._enqueue(frame)
 

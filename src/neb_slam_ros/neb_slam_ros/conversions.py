@@ -70,13 +70,21 @@ def camera_from_msg(msg: CameraInfo, topic: str) -> tuple[Intrinsics, tuple[floa
     except ValueError as exc:
         raise InputError(topic, str(exc)) from None
     if any(d) and msg.distortion_model not in ("plumb_bob", "rational_polynomial"):
-        raise InputError(topic, f"distortion model {msg.distortion_model!r} is not supported "
-                                "(expected plumb_bob or rational_polynomial)")
+        raise InputError(
+            topic,
+            f"distortion model {msg.distortion_model!r} is not supported (expected plumb_bob or rational_polynomial)",
+        )
     return intr, d
 
 
-def frame_from_msgs(rgb_msg: Image, depth_msg: Image, camera: tuple[Intrinsics, tuple[float, ...]] | None,
-                    depth_scale: float, topics: tuple[str, str, str], index: int = 0) -> tuple[RgbdFrame, int]:
+def frame_from_msgs(
+    rgb_msg: Image,
+    depth_msg: Image,
+    camera: tuple[Intrinsics, tuple[float, ...]] | None,
+    depth_scale: float,
+    topics: tuple[str, str, str],
+    index: int = 0,
+) -> tuple[RgbdFrame, int]:
     """One RGB-D frame from its colour and depth images and the latest camera info.
 
     ``topics``: the colour, depth and camera-info topic names (for messages). Depth follows REP 118:
@@ -106,8 +114,9 @@ def frame_from_msgs(rgb_msg: Image, depth_msg: Image, camera: tuple[Intrinsics, 
     if not (depth > 0).any():
         raise InputError(depth_topic, "no valid depth pixel (all 0, NaN, Inf or negative)")
     extras = {"distortion": distortion} if any(distortion) else {}
-    return RgbdFrame(index=index, stamp_ns=stamp_ns(rgb_msg), rgb=rgb, depth_m=depth, intrinsics=intr,
-                     extras=extras), n_not_finite
+    return RgbdFrame(
+        index=index, stamp_ns=stamp_ns(rgb_msg), rgb=rgb, depth_m=depth, intrinsics=intr, extras=extras
+    ), n_not_finite
 
 
 def pose_from_msg(msg: PoseStamped, topic: str) -> np.ndarray:
@@ -128,8 +137,15 @@ def _bytes(a: np.ndarray) -> array.array:
 
 def rgb_msg(rgb: np.ndarray, ns: int, frame_id: str) -> Image:
     h, w = rgb.shape[:2]
-    return Image(header=header(ns, frame_id), height=h, width=w, encoding="rgb8", is_bigendian=0, step=3 * w,
-                 data=_bytes(rgb.astype(np.uint8, copy=False)))
+    return Image(
+        header=header(ns, frame_id),
+        height=h,
+        width=w,
+        encoding="rgb8",
+        is_bigendian=0,
+        step=3 * w,
+        data=_bytes(rgb.astype(np.uint8, copy=False)),
+    )
 
 
 def depth_msg(depth_m: np.ndarray, ns: int, frame_id: str) -> Image:
@@ -137,8 +153,9 @@ def depth_msg(depth_m: np.ndarray, ns: int, frame_id: str) -> Image:
     h, w = depth_m.shape
     d = depth_m.astype("<f4", copy=True)
     d[~(np.isfinite(d) & (d > 0))] = np.nan
-    return Image(header=header(ns, frame_id), height=h, width=w, encoding="32FC1", is_bigendian=0, step=4 * w,
-                 data=_bytes(d))
+    return Image(
+        header=header(ns, frame_id), height=h, width=w, encoding="32FC1", is_bigendian=0, step=4 * w, data=_bytes(d)
+    )
 
 
 def camera_info_msg(intr: Intrinsics, distortion, ns: int, frame_id: str) -> CameraInfo:
@@ -146,19 +163,29 @@ def camera_info_msg(intr: Intrinsics, distortion, ns: int, frame_id: str) -> Cam
     K = intr.K
     P = np.zeros((3, 4))
     P[:, :3] = K
-    return CameraInfo(header=header(ns, frame_id), height=intr.height, width=intr.width,
-                      distortion_model="plumb_bob", d=d, k=[float(v) for v in K.reshape(-1)],
-                      r=[float(v) for v in np.eye(3).reshape(-1)], p=[float(v) for v in P.reshape(-1)])
+    return CameraInfo(
+        header=header(ns, frame_id),
+        height=intr.height,
+        width=intr.width,
+        distortion_model="plumb_bob",
+        d=d,
+        k=[float(v) for v in K.reshape(-1)],
+        r=[float(v) for v in np.eye(3).reshape(-1)],
+        p=[float(v) for v in P.reshape(-1)],
+    )
 
 
 def pose_msg(T_world_cam: np.ndarray, ns: int, frame_id: str) -> PoseStamped:
     tx, ty, tz, qx, qy, qz, qw = (float(v) for v in pose_to_tum(T_world_cam))
-    return PoseStamped(header=header(ns, frame_id),
-                       pose=Pose(position=Point(x=tx, y=ty, z=tz), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
+    return PoseStamped(
+        header=header(ns, frame_id),
+        pose=Pose(position=Point(x=tx, y=ty, z=tz), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+    )
 
 
-def odometry_msg(T_world_cam: np.ndarray, ns: int, T_prev: np.ndarray | None, prev_ns: int | None,
-                 frame_id: str, child_frame_id: str) -> Odometry:
+def odometry_msg(
+    T_world_cam: np.ndarray, ns: int, T_prev: np.ndarray | None, prev_ns: int | None, frame_id: str, child_frame_id: str
+) -> Odometry:
     """Pose plus the twist (in the camera frame, as nav_msgs/Odometry wants) from the previous pose."""
     msg = Odometry(header=header(ns, frame_id), child_frame_id=child_frame_id)
     msg.pose.pose = pose_msg(T_world_cam, ns, frame_id).pose
@@ -169,8 +196,10 @@ def odometry_msg(T_world_cam: np.ndarray, ns: int, T_prev: np.ndarray | None, pr
 
         w = Rotation.from_matrix(delta[:3, :3]).as_rotvec() / dt
         v = delta[:3, 3] / dt
-        msg.twist.twist = Twist(linear=Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2])),
-                                angular=Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2])))
+        msg.twist.twist = Twist(
+            linear=Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2])),
+            angular=Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2])),
+        )
     return msg
 
 
@@ -203,8 +232,9 @@ def mesh_markers(parts: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]], ns
     """
     out = MarkerArray()
     for block_id, (verts, faces, colours) in sorted(parts.items()):
-        m = Marker(header=header(ns, frame_id), ns="neb_blocks", id=int(block_id), type=Marker.TRIANGLE_LIST,
-                   action=Marker.ADD)
+        m = Marker(
+            header=header(ns, frame_id), ns="neb_blocks", id=int(block_id), type=Marker.TRIANGLE_LIST, action=Marker.ADD
+        )
         m.pose.orientation.w = 1.0
         m.scale = Vector3(x=1.0, y=1.0, z=1.0)
         m.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)

@@ -32,13 +32,20 @@ class KeyframeMeta:
     block_centres: np.ndarray
 
     def to_json(self) -> str:
-        return json.dumps({"stamp_ns": self.stamp_ns, "frame_index": self.frame_index, "keyframe_id": self.keyframe_id,
-                           "map_now": self.map_now, "first": self.first,
-                           "T_world_cam": [float(v) for v in np.asarray(self.T_world_cam).reshape(-1)],
-                           "block_centres": np.asarray(self.block_centres, dtype=np.float64).reshape(-1, 3).tolist()})
+        return json.dumps(
+            {
+                "stamp_ns": self.stamp_ns,
+                "frame_index": self.frame_index,
+                "keyframe_id": self.keyframe_id,
+                "map_now": self.map_now,
+                "first": self.first,
+                "T_world_cam": [float(v) for v in np.asarray(self.T_world_cam).reshape(-1)],
+                "block_centres": np.asarray(self.block_centres, dtype=np.float64).reshape(-1, 3).tolist(),
+            }
+        )
 
     @classmethod
-    def from_json(cls, text: str) -> "KeyframeMeta":
+    def from_json(cls, text: str) -> KeyframeMeta:
         """Parse; raises ValueError naming the field that is missing or wrong."""
         try:
             d = json.loads(text)
@@ -47,8 +54,15 @@ class KeyframeMeta:
         try:
             T = np.array(d["T_world_cam"], dtype=np.float64).reshape(4, 4)
             centres = np.array(d["block_centres"], dtype=np.float64).reshape(-1, 3)
-            return cls(int(d["stamp_ns"]), int(d["frame_index"]), int(d["keyframe_id"]), bool(d["map_now"]),
-                       bool(d["first"]), T, centres)
+            return cls(
+                int(d["stamp_ns"]),
+                int(d["frame_index"]),
+                int(d["keyframe_id"]),
+                bool(d["map_now"]),
+                bool(d["first"]),
+                T,
+                centres,
+            )
         except KeyError as exc:
             raise ValueError(f"field {exc.args[0]!r} is missing") from None
         except (TypeError, ValueError) as exc:
@@ -109,8 +123,9 @@ class KeyframeSubscriber:
         self.assembler = KeyframeAssembler()
         kinds = {"rgb": Image, "depth": Image, "camera_info": CameraInfo, "pose": PoseStamped, "meta": String}
         for part in KEYFRAME_PARTS:
-            node.create_subscription(kinds[part], f"keyframe/{part}", lambda m, p=part: self._on_part(p, m),
-                                     qos.keyframes())
+            node.create_subscription(
+                kinds[part], f"keyframe/{part}", lambda m, p=part: self._on_part(p, m), qos.keyframes()
+            )
 
     def _on_part(self, part: str, msg) -> None:
         from neb_slam_ros import conversions

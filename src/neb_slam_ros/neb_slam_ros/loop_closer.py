@@ -4,12 +4,14 @@ Subscribes the tracker's keyframes (``keyframe/*``) and keeps every one in the e
 :class:`~neb_slam_core.loop.closer.LoopCloser` (ORB words in an inverted-index database, depth maps for
 the correction). Keyframe poses are the tracker's, replaced by the mapper's refined ones as its
 ``map_update`` messages bring them (once an update says the mapper has handled the newest correction
-published here: older ones still hold the poses from before it). For each new keyframe it runs the paper's loop query; when a loop is
+published here: older ones still hold the poses from before it). For each new keyframe it runs the paper's loop
+query; when a loop is
 found, verified and its correction fitted, it publishes ``loop_closure`` (nav_msgs/Path): the corrected
 poses of the keyframes from just after the loop's older end to the new keyframe, each pose stamped with
 its keyframe's stamp. Every checked keyframe gets a ``loop_closure`` message stamped (header) with that
 keyframe's stamp: with no poses when there is nothing to correct. A tracker with ``loop_sync`` waits
-for it before the next frame, so that a replay does not end before its last keyframes were checked. The mapper applies it (and re-optimises), and its next ``map_update`` carries the
+for it before the next frame, so that a replay does not end before its last keyframes were checked. The mapper
+applies it (and re-optimises), and its next ``map_update`` carries the
 corrected poses to the tracker, which republishes ``path`` whole.
 
 Example::
@@ -55,8 +57,8 @@ class LoopCloserNode(NebNode):
         super().__init__("loop_closer", LoopCloserOptions, join_timeout_s=60.0)
         # loop.enabled false: the node runs (a launch file need not change) but checks nothing
         self.closer = LoopCloser(self.cfg.loop, seed=self.cfg.seed + 4) if self.cfg.loop.enabled else None
-        self._poses: list[np.ndarray] = []         # keyframe id -> current pose
-        self._stamps: list[int] = []               # keyframe id -> stamp
+        self._poses: list[np.ndarray] = []  # keyframe id -> current pose
+        self._stamps: list[int] = []  # keyframe id -> stamp
         self._mapper_poses: np.ndarray | None = None  # the newest map update's keyframe poses
         self._map_version = 0
         self._sent_loop_stamp = -1  # the newest correction published: older map updates do not carry it
@@ -67,8 +69,11 @@ class LoopCloserNode(NebNode):
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
         self.pub_loop = self.create_publisher(Path, "loop_closure", qos.events(10))
         self.start_worker()
-        what = (f"vocabulary {self.closer.detector.vocabulary.n_words} words" if self.closer is not None
-                else "loop.enabled is false: no loop will be checked")
+        what = (
+            f"vocabulary {self.closer.detector.vocabulary.n_words} words"
+            if self.closer is not None
+            else "loop.enabled is false: no loop will be checked"
+        )
         self.get_logger().info(f"neb_slam loop_closer started (config {self.get_parameter('config').value}, {what})")
 
     # ------------------------------------------------------------------ callbacks (executor thread)
@@ -80,8 +85,11 @@ class LoopCloserNode(NebNode):
         with self.cond:
             # an update the mapper sent before it applied our newest correction holds the poses from
             # before it: taking them would undo the correction (and find the same loop again)
-            if (update.version > self._map_version and len(update.keyframe_poses)
-                    and update.loop_stamp_ns >= self._sent_loop_stamp):
+            if (
+                update.version > self._map_version
+                and len(update.keyframe_poses)
+                and update.loop_stamp_ns >= self._sent_loop_stamp
+            ):
                 self._map_version = update.version
                 self._mapper_poses = np.array(update.keyframe_poses, dtype=np.float64)
 
@@ -97,7 +105,7 @@ class LoopCloserNode(NebNode):
     def do_work(self, work: tuple[list[dict], np.ndarray | None]) -> None:
         ready, refined = work
         if refined is not None:
-            for k, T in enumerate(refined[:len(self._poses)]):
+            for k, T in enumerate(refined[: len(self._poses)]):
                 self._poses[k] = T
         self._check_all(ready)
 
@@ -144,16 +152,21 @@ class LoopCloserNode(NebNode):
         with self.cond:
             self._sent_loop_stamp = int(meta.stamp_ns)
             self._mapper_poses = None  # received before the correction: stale already
-        self.get_logger().info(f"loop {frames}: score {event.score:.3f}, correction {event.correction_cm:.1f} cm / "
-                               f"{event.correction_deg:.2f} deg, keyframes {first}..{kid} corrected")
-        return conversions.path_msg(np.array(self._stamps[first:], dtype=np.int64), corrected[first:],
-                                    self.opt.frame_id, meta.stamp_ns)
+        self.get_logger().info(
+            f"loop {frames}: score {event.score:.3f}, correction {event.correction_cm:.1f} cm / "
+            f"{event.correction_deg:.2f} deg, keyframes {first}..{kid} corrected"
+        )
+        return conversions.path_msg(
+            np.array(self._stamps[first:], dtype=np.int64), corrected[first:], self.opt.frame_id, meta.stamp_ns
+        )
 
     # ------------------------------------------------------------------ shutdown
 
     def finish(self) -> None:
-        self.final_log(f"neb_slam loop_closer stopped: {len(self._poses)} keyframes, {self.n_detected} loops "
-                       f"detected, {self.n_loops} applied")
+        self.final_log(
+            f"neb_slam loop_closer stopped: {len(self._poses)} keyframes, {self.n_detected} loops "
+            f"detected, {self.n_loops} applied"
+        )
 
 
 def main(args: Sequence[str] | None = None) -> int:

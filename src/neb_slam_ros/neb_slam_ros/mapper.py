@@ -4,11 +4,13 @@ Subscribes the tracker's keyframes (``keyframe/*``, assembled by stamp) and inte
 engine's :class:`~neb_slam_core.slam.Backend`: the first keyframe initialises the map, keyframes marked
 ``map_now`` run a joint optimisation step. A ``loop_closure`` from the loop closer (corrected poses of
 consecutive keyframes) is applied once those keyframes are integrated: keyframes after them move
-rigidly with the last, and the map is re-optimised in the paper's two stages. After each step it publishes ``map_update`` (the changed
+rigidly with the last, and the map is re-optimised in the paper's two stages. After each step it publishes
+``map_update`` (the changed
 blocks, the decoders and the keyframe poses; layout in ``neb_slam_core/scene/map_update.py``). Every
 ``mesh_period_s`` it publishes ``mesh`` (one TRIANGLE_LIST marker per block). Services ``save_mesh`` and
 ``save_map`` write ``mesh.ply`` / ``map.pt`` into ``output_dir`` (``save_mesh`` also publishes that mesh);
-on shutdown (SIGINT, SIGTERM) it publishes the final mesh and writes ``map.pt``, ``mesh.ply``, ``trajectory.txt`` (every frame of the tracker's latest ``path``, each moved
+on shutdown (SIGINT, SIGTERM) it publishes the final mesh and writes ``map.pt``, ``mesh.ply``,
+``trajectory.txt`` (every frame of the tracker's latest ``path``, each moved
 with the final pose of its keyframe) and ``config.yaml`` there.
 
 With ``map_file`` (a ``map.pt`` of ``save_map`` or of ``neb-slam run``) it continues that map: its
@@ -96,17 +98,23 @@ class MapperNode(NebNode):
         self.create_subscription(PathMsg, "loop_closure", self._on_loop, qos.events(10))
         self.pub_update = self.create_publisher(UInt8MultiArray, "map_update", qos.events(10))
         self.map_outputs = MapOutputs(
-            self, self.opt.frame_id, self.cfg.mesh, self.out, self.opt.mesh_period_s,
+            self,
+            self.opt.frame_id,
+            self.cfg.mesh,
+            self.out,
+            self.opt.mesh_period_s,
             block_map=lambda: self.block_map if len(self.backend.keyframes) else None,
             observed_points=lambda: self.backend.observed_points(self._rng),
-            write_map=self._write_map)
+            write_map=self._write_map,
+        )
         self._n_update_subscribers = 0
         if self.opt.map_file:
             self._base_timer = self.create_timer(0.5, self._offer_loaded_map)
         self.start_worker()
         start = f", continuing {self.opt.map_file} ({len(self.block_map)} blocks)" if self.opt.map_file else ""
-        self.get_logger().info(f"neb_slam mapper started (config {self.get_parameter('config').value}, "
-                               f"output {self.out}{start})")
+        self.get_logger().info(
+            f"neb_slam mapper started (config {self.get_parameter('config').value}, output {self.out}{start})"
+        )
 
     # ------------------------------------------------------------------ callbacks (executor thread)
 
@@ -120,7 +128,9 @@ class MapperNode(NebNode):
 
     def _on_path(self, msg: PathMsg) -> None:
         stamps = np.array([conversions.stamp_ns(p) for p in msg.poses], dtype=np.int64)
-        poses = np.stack([conversions.pose_from_msg(p, "path") for p in msg.poses]) if msg.poses else np.zeros((0, 4, 4))
+        poses = (
+            np.stack([conversions.pose_from_msg(p, "path") for p in msg.poses]) if msg.poses else np.zeros((0, 4, 4))
+        )
         with self.cond:
             self._path = (stamps, poses)
 
@@ -161,18 +171,23 @@ class MapperNode(NebNode):
     def _integrate(self, parts: dict) -> None:
         meta: KeyframeMeta = parts["meta"]
         if meta.first and self.opt.map_file:
-            self.get_logger().error("the tracker started a new map instead of continuing map_file (start it with "
-                                    "wait_for_map:=true): its map and this one differ from here on")
-        for centre in meta.block_centres[len(self.block_map):]:
+            self.get_logger().error(
+                "the tracker started a new map instead of continuing map_file (start it with "
+                "wait_for_map:=true): its map and this one differ from here on"
+            )
+        for centre in meta.block_centres[len(self.block_map) :]:
             block = self.block_map.add_block(torch.as_tensor(centre, dtype=torch.float32))
             self._unsent_blocks.add(block.block_id)
         frame = KeyframeSubscriber.frame(parts)
         step = self.backend.add_keyframe(frame, meta.T_world_cam, meta.frame_index, meta.map_now, meta.first)
         if step.keyframe.keyframe_id != meta.keyframe_id:
-            self.get_logger().error(f"keyframe ids diverged: tracker {meta.keyframe_id}, mapper "
-                                    f"{step.keyframe.keyframe_id}")
-        self.get_logger().debug(f"keyframe {meta.keyframe_id} (frame {meta.frame_index}) integrated"
-                                + (f", mapped in {step.map_ms:.0f} ms" if step.mapped else ""))
+            self.get_logger().error(
+                f"keyframe ids diverged: tracker {meta.keyframe_id}, mapper {step.keyframe.keyframe_id}"
+            )
+        self.get_logger().debug(
+            f"keyframe {meta.keyframe_id} (frame {meta.frame_index}) integrated"
+            + (f", mapped in {step.map_ms:.0f} ms" if step.mapped else "")
+        )
         if step.mapped:
             self._n_mapping_steps += 1
             self._map_ms += step.map_ms
@@ -190,13 +205,15 @@ class MapperNode(NebNode):
         self._loop_stamp = max(self._loop_stamp, loop_stamp_ns)
         ids = [id_of[int(s)] for s in stamps]
         if ids != list(range(ids[0], ids[0] + len(ids))) or ids[0] == 0:
-            self.get_logger().error(f"loop_closure: keyframes {ids} are not consecutive keyframes after the "
-                                    "first: correction ignored")
+            self.get_logger().error(
+                f"loop_closure: keyframes {ids} are not consecutive keyframes after the first: correction ignored"
+            )
             return True
         step = self.backend.correct_loop(merge_correction(kfs.poses(), ids[0], poses), ids[0] - 1)
         self._n_loops += 1
-        self.get_logger().info(f"loop correction applied to keyframes {ids[0]}..{len(kfs) - 1}, map re-optimised "
-                               f"in {step.map_ms:.0f} ms")
+        self.get_logger().info(
+            f"loop correction applied to keyframes {ids[0]}..{len(kfs) - 1}, map re-optimised in {step.map_ms:.0f} ms"
+        )
         self._publish_update(step.changed_block_ids | self._unsent_blocks, int(kfs[len(kfs) - 1].stamp_ns))
         self._unsent_blocks.clear()
         return True
@@ -213,17 +230,26 @@ class MapperNode(NebNode):
     def _publish_update(self, block_ids, ack_stamp_ns: int) -> None:
         kfs = self.backend.keyframes
         self._version += 1
-        data = map_update.encode(self.block_map, block_ids, self._version, ack_stamp_ns,
-                                 [kf.stamp_ns for kf in kfs.keyframes], kfs.poses(), self._loop_stamp)
+        data = map_update.encode(
+            self.block_map,
+            block_ids,
+            self._version,
+            ack_stamp_ns,
+            [kf.stamp_ns for kf in kfs.keyframes],
+            kfs.poses(),
+            self._loop_stamp,
+        )
         self.pub_update.publish(UInt8MultiArray(data=data))
 
     # ------------------------------------------------------------------ outputs (worker thread)
 
     def _write_map(self, run_dir: RunDirectory) -> Path:
         kfs = self.backend.keyframes
-        extra = {"keyframe_poses": torch.from_numpy(kfs.poses() if len(kfs) else np.zeros((0, 4, 4))),
-                 "keyframe_stamps_ns": [int(kf.stamp_ns) for kf in kfs.keyframes],
-                 "keyframe_frame_indices": [int(kf.frame_index) for kf in kfs.keyframes]}
+        extra = {
+            "keyframe_poses": torch.from_numpy(kfs.poses() if len(kfs) else np.zeros((0, 4, 4))),
+            "keyframe_stamps_ns": [int(kf.stamp_ns) for kf in kfs.keyframes],
+            "keyframe_frame_indices": [int(kf.frame_index) for kf in kfs.keyframes],
+        }
         return save_map(self.block_map, run_dir.file(MAP_FILE), extra=extra, block_keyframes=kfs.block_keyframes())
 
     def trajectory(self) -> Trajectory:
@@ -251,16 +277,19 @@ class MapperNode(NebNode):
         run_dir.write_config(self.cfg)
         written = [str(self._write_map(run_dir))]
         traj = self.trajectory()
-        written.append(str(run_dir.write_trajectory(traj, TRAJECTORY_FILE,
-                                                    f"neb_slam mapper: {len(traj)} frames, T_world_cam")))
+        written.append(
+            str(run_dir.write_trajectory(traj, TRAJECTORY_FILE, f"neb_slam mapper: {len(traj)} frames, T_world_cam"))
+        )
         try:
             written.append(self.map_outputs.save_mesh(ack_timeout_s=FINAL_MESH_ACK_S))
         except Exception as exc:
             self.final_log(f"mesh not written: {type(exc).__name__}: {exc}", "WARN")
-        self.final_log(f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} "
-                       f"blocks, {self._n_mapping_steps} mapping steps "
-                       f"({self._map_ms / max(self._n_mapping_steps, 1):.0f} ms each), {self._n_loops} loop "
-                       f"corrections; wrote {', '.join(Path(w).name for w in written)} to {self.out}")
+        self.final_log(
+            f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} "
+            f"blocks, {self._n_mapping_steps} mapping steps "
+            f"({self._map_ms / max(self._n_mapping_steps, 1):.0f} ms each), {self._n_loops} loop "
+            f"corrections; wrote {', '.join(Path(w).name for w in written)} to {self.out}"
+        )
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -116,8 +116,14 @@ class NebNode(Node):
         join_timeout_s: how long :meth:`close` waits for the worker to finish what it is doing.
     """
 
-    def __init__(self, name: str, options: type | None = None, with_config: bool = True,
-                 join_timeout_s: float = 600.0, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        options: type | None = None,
+        with_config: bool = True,
+        join_timeout_s: float = 600.0,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(name, namespace=kwargs.pop("namespace", NAMESPACE), **kwargs)
         self.cfg = declare_config(self) if with_config else None
         self.opt = declare_options(self, options) if options is not None else None

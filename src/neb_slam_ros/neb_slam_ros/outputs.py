@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Odometry, Path as PathMsg
+from nav_msgs.msg import Odometry
+from nav_msgs.msg import Path as PathMsg
 from rclpy.duration import Duration
 from visualization_msgs.msg import MarkerArray
 
@@ -54,8 +55,9 @@ class PoseOutputs:
         """``odometry`` (twist from the previous frame) and ``pose`` of a processed frame. The pose goes
         last: lockstep replay publishes the next frame (or ends the process) when it arrives."""
         prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
-        self.pub_odom.publish(conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, self.frame_id,
-                                                       CAMERA_FRAME))
+        self.pub_odom.publish(
+            conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, self.frame_id, CAMERA_FRAME)
+        )
         self._prev = (r.T_world_cam, r.stamp_ns)
         self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, self.frame_id))
 
@@ -91,9 +93,17 @@ class MapOutputs:
         write_map: writes the map checkpoint into a run directory; returns its path.
     """
 
-    def __init__(self, node, frame_id: str, mesh_cfg, out_dir: Path, mesh_period_s: float,
-                 block_map: Callable[[], object | None], observed_points: Callable[[], np.ndarray],
-                 write_map: Callable[[RunDirectory], Path]):
+    def __init__(
+        self,
+        node,
+        frame_id: str,
+        mesh_cfg,
+        out_dir: Path,
+        mesh_period_s: float,
+        block_map: Callable[[], object | None],
+        observed_points: Callable[[], np.ndarray],
+        write_map: Callable[[RunDirectory], Path],
+    ):
         self.frame_id = frame_id
         self.mesh_cfg = mesh_cfg
         self.out_dir = out_dir
@@ -125,8 +135,7 @@ class MapOutputs:
         """Publish ``mesh`` as one marker per block; with ``ack_timeout_s``, then wait up to that long until
         every matched subscriber has acknowledged it. Returns what was published, for the log."""
         block_map = self._block_map()
-        self.pub_mesh.publish(conversions.mesh_markers(split_by_block(mesh, block_map), time.time_ns(),
-                                                       self.frame_id))
+        self.pub_mesh.publish(conversions.mesh_markers(split_by_block(mesh, block_map), time.time_ns(), self.frame_id))
         if ack_timeout_s > 0:
             self.pub_mesh.wait_for_all_acked(Duration(seconds=ack_timeout_s))
         return f"{len(mesh.faces)} faces"
@@ -147,4 +156,3 @@ class MapOutputs:
         if self._block_map() is None:
             raise RuntimeError("nothing mapped yet")
         return str(self._write_map(self.run_dir()))
-

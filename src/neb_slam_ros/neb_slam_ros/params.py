@@ -53,9 +53,13 @@ def _flatten(tree: dict, prefix: str = "") -> dict[str, Any]:
 def declare_config(node: Node, default_preset: str = "base") -> SlamConfig:
     """Declare ``config`` and every engine parameter on ``node``; returns the validated config."""
     preset = node.declare_parameter(
-        "config", default_preset,
-        ParameterDescriptor(description="engine config: a preset (base, tum, scannet, replica, synthetic, small, "
-                                        "ci) or a YAML file; the parameters below override it")).value
+        "config",
+        default_preset,
+        ParameterDescriptor(
+            description="engine config: a preset (base, tum, scannet, replica, synthetic, small, "
+            "ci) or a YAML file; the parameters below override it"
+        ),
+    ).value
     try:
         base = load_config(str(preset))
     except ConfigError as exc:
@@ -64,8 +68,13 @@ def declare_config(node: Node, default_preset: str = "base") -> SlamConfig:
     overrides = {}
     for name, default in defaults.items():
         # dynamic typing: a params file may write 1 for 1.0; the core's validation checks types and ranges
-        value = node.declare_parameter(name, default, ParameterDescriptor(
-            dynamic_typing=True, description=f"engine config {name} (see neb_slam_core configs/base.yaml)")).value
+        value = node.declare_parameter(
+            name,
+            default,
+            ParameterDescriptor(
+                dynamic_typing=True, description=f"engine config {name} (see neb_slam_core configs/base.yaml)"
+            ),
+        ).value
         if value != default:
             overrides[name] = value
     try:

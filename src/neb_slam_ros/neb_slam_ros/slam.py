@@ -1,10 +1,13 @@
 """``slam``: the whole suite in one process, one engine, no map serialisation.
 
-Runs the engine's :class:`~neb_slam_core.slam.Slam` (tracking and mapping on one block map) on the camera
-input and publishes what the separate ``tracker`` and ``mapper`` publish for other stacks: ``pose``,
-``odometry``, ``path``, ``blocks`` and ``mesh`` (keyframes and map updates stay inside the process). With
-a ``bag`` parameter the process also runs ``bag_replay`` (its parameters: ``rate``, ``lockstep``, ``start``,
-``count``, ``loop``) on the same executor, and ends when the bag does. On shutdown it
+Runs the engine on the camera input: by default the live one (:class:`~neb_slam_core.live.LiveSlam`:
+tracking in the node's worker thread on the newest frame, within ``live.max_gap_s`` of the last tracked
+one, mapping and loop closure in threads of their own), or with ``live:=false`` (and in lockstep replay)
+:class:`~neb_slam_core.slam.Slam`, every frame in the paper's order. It publishes what the separate
+``tracker`` and ``mapper`` publish for other stacks: ``pose``, ``odometry``, ``path``, ``blocks`` and
+``mesh`` (keyframes and map updates stay inside the process). With a ``bag`` parameter the process also
+runs ``bag_replay`` (its parameters: ``rate``, ``lockstep``, ``start``, ``count``, ``loop``) on the same
+executor, and ends when the bag does (a live engine tracks one more frame then). On shutdown it
 writes a complete run directory into ``output_dir``, the same files as ``neb-slam run`` (trajectory,
 ground truth and ATE when ``ground_truth_topic`` is set, timings, metrics, plots, map, mesh), and
 publishes the final mesh (``save_mesh`` also publishes the mesh it writes). With
@@ -28,7 +31,7 @@ from pathlib import Path
 from rclpy.node import Node
 
 from neb_slam_core.eval.run_report import RunOutputOptions, write_run
-from neb_slam_core.io.run_dir import RunDirectory, RunLog
+from neb_slam_core.io.run_dir import RunLog
 from neb_slam_core.live import LiveSlam
 from neb_slam_core.slam import Slam
 from neb_slam_core.types import RgbdFrame
@@ -54,10 +57,10 @@ class SlamOptions:
 
     PARAMETER_DOCS = {
         "live": "tracking never waits: mapping and loop closure run in threads beside it and the newest frame "
-                "is tracked whenever the engine is free (false: every frame in the paper's order, as "
-                "neb-slam run; lockstep with bag implies false)",
+        "is tracked whenever the engine is free (false: every frame in the paper's order, as "
+        "neb-slam run; lockstep with bag implies false)",
         "lockstep": "with bag: the in-process replay publishes the next frame after this one's pose (bag_replay's "
-                    "parameter; the engine then processes every frame in order, live or not)",
+        "parameter; the engine then processes every frame in order, live or not)",
         "map_file": "a map checkpoint (map.pt) to continue; empty: start from an empty map",
         "output_dir": "run directory written at shutdown (and by save_mesh / save_map); empty: runs/slam-<date>-<time>",
         "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
@@ -88,14 +91,20 @@ class SlamNode(NebNode):
         self.input = CameraInput(self, self.input_opt, self.cond)
         self.poses = PoseOutputs(self, self.opt.frame_id, self.cfg.block.edge_m)
         self.map_outputs = MapOutputs(
-            self, self.opt.frame_id, self.cfg.mesh, self.out, self.opt.mesh_period_s,
+            self,
+            self.opt.frame_id,
+            self.cfg.mesh,
+            self.out,
+            self.opt.mesh_period_s,
             block_map=lambda: None if self.slam is None else self.slam.block_map,
             observed_points=lambda: self.slam.observed_points(),
-            write_map=lambda run_dir: run_dir.write_map(self.slam, self.run_log.frames))
+            write_map=lambda run_dir: run_dir.write_map(self.slam, self.run_log.frames),
+        )
         self.start_worker()
         start = f", continuing {self.opt.map_file} ({len(self._map)} blocks)" if self._map is not None else ""
-        self.get_logger().info(f"neb_slam slam started (config {self.get_parameter('config').value}, "
-                               f"output {self.out}{start})")
+        self.get_logger().info(
+            f"neb_slam slam started (config {self.get_parameter('config').value}, output {self.out}{start})"
+        )
 
     # ------------------------------------------------------------------ worker thread
 
@@ -121,19 +130,22 @@ class SlamNode(NebNode):
         try:
             self._process(frame)
         except Exception as exc:  # a frame must never kill the node
-            self.get_logger().error(f"frame {frame.stamp_ns} failed in the engine ({type(exc).__name__}: {exc}); "
-                                    "skipped")
+            self.get_logger().error(
+                f"frame {frame.stamp_ns} failed in the engine ({type(exc).__name__}: {exc}); skipped"
+            )
 
     def _process(self, frame: RgbdFrame) -> None:
         gt = None
         if self.input_opt.ground_truth_topic:
-            gt = self.input.wait_for_ground_truth(frame.stamp_ns, self.opt.initial_pose_timeout_s if self.slam is None
-                                                  else 0.5, lambda: self.stopping)
+            gt = self.input.wait_for_ground_truth(
+                frame.stamp_ns, self.opt.initial_pose_timeout_s if self.slam is None else 0.5, lambda: self.stopping
+            )
             frame = dataclasses.replace(frame, T_world_cam=gt)
         if self.slam is None:
             if self.input_opt.ground_truth_topic and gt is None:
-                self.get_logger().warning(f"no pose on {self.input_opt.ground_truth_topic} near the first frame: "
-                                          "starting from the identity")
+                self.get_logger().warning(
+                    f"no pose on {self.input_opt.ground_truth_topic} near the first frame: starting from the identity"
+                )
             engine = LiveSlam if self.live else Slam
             self.slam, self._map = engine(self.cfg, gt, self._map), None
             self._t_first = time.perf_counter()
@@ -147,8 +159,10 @@ class SlamNode(NebNode):
             self.poses.publish_blocks(block_centres(self.slam.block_map), r.stamp_ns)
         self.poses.publish_frame(r)
         if not r.tracking_ok:
-            self.get_logger().warning(f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
-                                      "kept the motion prediction")
+            self.get_logger().warning(
+                f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
+                "kept the motion prediction"
+            )
 
     # ------------------------------------------------------------------ shutdown
 
@@ -179,16 +193,19 @@ class SlamNode(NebNode):
         summary.metrics["frames_in"] = frames_in
         summary.metrics["frames_dropped"] = frames_in - self.slam.n_frames
         if self.live:
-            summary.metrics.update(self.slam.live_metrics(frames_in, frames_in - self.slam.n_frames,
-                                                          self._t_last - self._t_first))
+            summary.metrics.update(
+                self.slam.live_metrics(frames_in, frames_in - self.slam.n_frames, self._t_last - self._t_first)
+            )
         run_dir.write_metrics(summary.metrics)
         if summary.mesh is not None:  # the final mesh, also to the topic's subscribers
             self.map_outputs.publish(summary.mesh, FINAL_MESH_ACK_S)
         m = summary.metrics
         ate = f", ATE {m['ate_rmse_cm']:.3f} cm" if "ate_rmse_cm" in m else ""
-        self.final_log(f"neb_slam slam stopped: {self.slam.n_frames} frames, {m.get('n_blocks')} blocks, "
-                       f"{m.get('s_per_frame') or 0:.3f} s per frame{ate}, {m['frames_dropped']} dropped, "
-                       f"{self.input.warnings.total} input warnings; run directory {self.out}")
+        self.final_log(
+            f"neb_slam slam stopped: {self.slam.n_frames} frames, {m.get('n_blocks')} blocks, "
+            f"{m.get('s_per_frame') or 0:.3f} s per frame{ate}, {m['frames_dropped']} dropped, "
+            f"{self.input.warnings.total} input warnings; run directory {self.out}"
+        )
 
 
 def main(args: Sequence[str] | None = None) -> int:

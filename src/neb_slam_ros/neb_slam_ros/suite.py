@@ -3,7 +3,8 @@
 ``ros2 launch`` is not available as a wheel, so this small launcher starts the nodes as processes (the
 installed executables' modules, exactly what ``ros2 run`` starts), replays the bag in lockstep, stops the
 suite in order when the bag ends (the loop closer first: it checks its last keyframes; then the mapper:
-it finishes its keyframes and loop corrections and writes its files; then the tracker), and turns the mapper's output folder into a run directory with the layout of ``neb-slam run``:
+it finishes its keyframes and loop corrections and writes its files; then the tracker), and turns the mapper's
+output folder into a run directory with the layout of ``neb-slam run``:
 ``trajectory.txt``, ``groundtruth.txt``, ``mesh.ply``, ``map.pt``, ``metrics.json`` and the plots.
 
     python -m neb_slam_ros.suite bags/demo_scene_bag --config synthetic --out runs/demo
@@ -64,10 +65,21 @@ def _env() -> dict[str, str]:
     return env
 
 
-def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_process: bool = False,
-           seed: int = 0, mesh_period_s: float = 0.0, env: dict[str, str] | None = None,
-           extra_params: dict[str, object] | None = None, start: int = 0,
-           map_file: Path | None = None, live: bool = False, rate: float = 1.0) -> SuiteRun:
+def launch(
+    bag: Path,
+    out: Path,
+    config: str = "synthetic",
+    count: int = 0,
+    one_process: bool = False,
+    seed: int = 0,
+    mesh_period_s: float = 0.0,
+    env: dict[str, str] | None = None,
+    extra_params: dict[str, object] | None = None,
+    start: int = 0,
+    map_file: Path | None = None,
+    live: bool = False,
+    rate: float = 1.0,
+) -> SuiteRun:
     """Replay ``bag`` (``count`` frames from frame ``start``; 0: all) through the suite into run directory
     ``out``, on an empty map or continuing the checkpoint ``map_file``. By default in lockstep, as fast as
     the engine goes; ``live``: at ``rate`` times the recorded speed without lockstep, the engine taking
@@ -81,22 +93,38 @@ def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_
     replay = {"bag": str(bag), "lockstep": not live, "rate": rate if live else 0.0, "count": count, "start": start}
     resume = {} if map_file is None else {"map_file": str(map_file)}
     if one_process:
-        plan = {"slam": {**engine, **camera, **replay, **resume, "output_dir": str(out),
-                         "mesh_period_s": mesh_period_s, "live": live}}
+        plan = {
+            "slam": {
+                **engine,
+                **camera,
+                **replay,
+                **resume,
+                "output_dir": str(out),
+                "mesh_period_s": mesh_period_s,
+                "live": live,
+            }
+        }
     else:
         sync = {"map_sync": not live, "loop_sync": not live}
-        plan = {"mapper": {**engine, **resume, "output_dir": str(out), "mesh_period_s": mesh_period_s},
-                "loop_closer": engine,
-                "tracker": {**engine, **camera, **sync, "wait_for_map": map_file is not None},
-                "bag_replay": replay}
+        plan = {
+            "mapper": {**engine, **resume, "output_dir": str(out), "mesh_period_s": mesh_period_s},
+            "loop_closer": engine,
+            "tracker": {**engine, **camera, **sync, "wait_for_map": map_file is not None},
+            "bag_replay": replay,
+        }
     procs: dict[str, subprocess.Popen] = {}
     run = SuiteRun(out, {}, 0.0)
     t0 = time.perf_counter()
     try:
         for node, params in plan.items():
             run.logs[node] = logs_dir / f"{node}.log"
-            procs[node] = subprocess.Popen(_node_cmd(node, params), env=env, stdin=subprocess.DEVNULL,
-                                           stdout=run.logs[node].open("w"), stderr=subprocess.STDOUT)
+            procs[node] = subprocess.Popen(
+                _node_cmd(node, params),
+                env=env,
+                stdin=subprocess.DEVNULL,
+                stdout=run.logs[node].open("w"),
+                stderr=subprocess.STDOUT,
+            )
         driver = "slam" if one_process else "bag_replay"
         run.exit_codes[driver] = procs[driver].wait()  # the replay ends the process when the bag ends
         run.wall_s = time.perf_counter() - t0
@@ -124,8 +152,10 @@ def launch(bag: Path, out: Path, config: str = "synthetic", count: int = 0, one_
     return run
 
 
-_TRACKER_SUMMARY = re.compile(r"tracker stopped: (\d+) frames tracked, .* (\d+) dropped, .*; (\d+) frames in, "
-                              r"mapping lag (\d+) \(max (\d+)\)")
+_TRACKER_SUMMARY = re.compile(
+    r"tracker stopped: (\d+) frames tracked, .* (\d+) dropped, .*; (\d+) frames in, "
+    r"mapping lag (\d+) \(max (\d+)\)"
+)
 
 
 def tracker_summary(log_text: str) -> dict:
@@ -135,8 +165,13 @@ def tracker_summary(log_text: str) -> dict:
     if not found:
         return {}
     tracked, dropped, frames_in, lag, lag_max = map(int, found[-1])
-    return {"frames_tracked": tracked, "frames_in": frames_in, "frames_dropped": dropped,
-            "mapping_lag_end": lag, "mapping_lag_max": lag_max}
+    return {
+        "frames_tracked": tracked,
+        "frames_in": frames_in,
+        "frames_dropped": dropped,
+        "mapping_lag_end": lag,
+        "mapping_lag_max": lag_max,
+    }
 
 
 def _replay_span_s(log_text: str) -> float:
@@ -163,9 +198,17 @@ def finish_run_directory(out: Path, bag: Path, config: str, wall_s: float) -> di
     run_dir = RunDirectory(out)
     est = read_tum_trajectory(run_dir.file(TRAJECTORY_FILE))
     block_map, extra = load_map(run_dir.file("map.pt"))
-    metrics = {"status": "complete", "n_frames": len(est), "n_blocks": len(block_map), "param_mb": block_map.param_mb(),
-               "n_keyframes": len(extra.get("keyframe_stamps_ns", [])), "wall_s": wall_s,
-               "fps": len(est) / wall_s if wall_s > 0 else None, "config": config, "bag": str(bag)}
+    metrics = {
+        "status": "complete",
+        "n_frames": len(est),
+        "n_blocks": len(block_map),
+        "param_mb": block_map.param_mb(),
+        "n_keyframes": len(extra.get("keyframe_stamps_ns", [])),
+        "wall_s": wall_s,
+        "fps": len(est) / wall_s if wall_s > 0 else None,
+        "config": config,
+        "bag": str(bag),
+    }
     with BagDataset(bag) as ds:
         gt_all = ds.ground_truth()
         if len(gt_all):
@@ -174,8 +217,9 @@ def finish_run_directory(out: Path, bag: Path, config: str, wall_s: float) -> di
             gt = Trajectory(gt_all.stamps_ns[keep], gt_all.poses[keep])
             run_dir.write_trajectory(gt, GROUNDTRUTH_FILE, "ground truth of the processed frames")
             try:
-                ate_metrics, ate = trajectory_metrics(est, gt, est_source=run_dir.file(TRAJECTORY_FILE),
-                                                      gt_source=run_dir.file(GROUNDTRUTH_FILE))
+                ate_metrics, ate = trajectory_metrics(
+                    est, gt, est_source=run_dir.file(TRAJECTORY_FILE), gt_source=run_dir.file(GROUNDTRUTH_FILE)
+                )
                 metrics.update(ate_metrics)
                 write_trajectory_plots(ate, out)
             except DatasetError as exc:
@@ -198,8 +242,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mesh-period", type=float, default=0.0, help="mesh topic period in s (0: at the end only)")
     args = p.parse_args(argv)
     out = args.out or Path(time.strftime(f"runs/suite-{args.bag.name}-%Y%m%d-%H%M%S"))
-    run = launch(args.bag, out, args.config, args.count, args.one_process, args.seed, args.mesh_period,
-                 start=args.start, map_file=args.map)
+    run = launch(
+        args.bag,
+        out,
+        args.config,
+        args.count,
+        args.one_process,
+        args.seed,
+        args.mesh_period,
+        start=args.start,
+        map_file=args.map,
+    )
     bad = {k: v for k, v in run.exit_codes.items() if v != 0}
     m = run.metrics
     print(f"  frames / fps       {m.get('n_frames')} / {m.get('fps') or (m.get('n_frames', 0) / run.wall_s):.3f}")

@@ -104,8 +104,10 @@ class TrackerNode(NebNode):
             "meta": self.create_publisher(String, "keyframe/meta", qos.keyframes()),
         }
         self.start_worker()
-        self.get_logger().info(f"neb_slam tracker started (config {self.get_parameter('config').value}, "
-                               f"map_sync {self.opt.map_sync}, inputs {', '.join(self.input.topics)})")
+        self.get_logger().info(
+            f"neb_slam tracker started (config {self.get_parameter('config').value}, "
+            f"map_sync {self.opt.map_sync}, inputs {', '.join(self.input.topics)})"
+        )
 
     # ------------------------------------------------------------------ callbacks (executor thread)
 
@@ -126,9 +128,11 @@ class TrackerNode(NebNode):
 
     def _waiting_for_map(self) -> bool:
         """A map update or a loop verdict the next frame has to wait for has not come yet."""
-        return ((self.opt.wait_for_map and self._map_version == 0)
-                or (self._awaited_ack is not None and self._acked < self._awaited_ack)
-                or (self._awaited_loop is not None and self._loop_checked < self._awaited_loop))
+        return (
+            (self.opt.wait_for_map and self._map_version == 0)
+            or (self._awaited_ack is not None and self._acked < self._awaited_ack)
+            or (self._awaited_loop is not None and self._loop_checked < self._awaited_loop)
+        )
 
     def has_work(self) -> bool:
         return bool(self._updates) or (self.input.has_frame and not self._waiting_for_map())
@@ -155,8 +159,9 @@ class TrackerNode(NebNode):
             try:
                 self._track(frame)
             except Exception as exc:  # a frame must never kill the node
-                self.get_logger().error(f"frame {frame.stamp_ns} failed in the engine "
-                                        f"({type(exc).__name__}: {exc}); skipped")
+                self.get_logger().error(
+                    f"frame {frame.stamp_ns} failed in the engine ({type(exc).__name__}: {exc}); skipped"
+                )
 
     def _warn_when_waiting_long(self) -> None:
         if not self._waiting_for_map():
@@ -167,8 +172,10 @@ class TrackerNode(NebNode):
             if self._map_version == 0 and self.opt.wait_for_map:
                 what = "no map yet (wait_for_map): is a mapper with map_file running?"
             else:
-                what = (f"no map update or loop verdict for keyframe {self._awaited_ack}: are the mapper "
-                        "and (with loop_sync) the loop closer running?")
+                what = (
+                    f"no map update or loop verdict for keyframe {self._awaited_ack}: are the mapper "
+                    "and (with loop_sync) the loop closer running?"
+                )
             self.get_logger().warning(f"{what} (waited {self.opt.map_timeout_s:.0f} s)")
             self._waited_since = time.monotonic()
 
@@ -178,8 +185,10 @@ class TrackerNode(NebNode):
             return np.eye(4)
         T = self.input.wait_for_ground_truth(stamp_ns, self.opt.initial_pose_timeout_s, lambda: self.stopping)
         if T is None:
-            self.get_logger().warning(f"no pose on {topic} near the first frame's stamp after "
-                                      f"{self.opt.initial_pose_timeout_s:g} s: starting from the identity")
+            self.get_logger().warning(
+                f"no pose on {topic} near the first frame's stamp after "
+                f"{self.opt.initial_pose_timeout_s:g} s: starting from the identity"
+            )
             return np.eye(4)
         return T
 
@@ -216,14 +225,17 @@ class TrackerNode(NebNode):
                 self._awaited_loop = r.stamp_ns
         self.poses.publish_frame(r)
         if not r.tracking_ok:
-            self.get_logger().warning(f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
-                                      "kept the motion prediction")
+            self.get_logger().warning(
+                f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
+                "kept the motion prediction"
+            )
 
     def _publish_keyframe(self, step: FrontendStep) -> None:
         r, f = step.result, step.frame
         ns = r.stamp_ns
-        meta = KeyframeMeta(ns, r.frame_index, step.keyframe_id, step.map_now, step.first, r.T_world_cam,
-                            block_centres(self.block_map))
+        meta = KeyframeMeta(
+            ns, r.frame_index, step.keyframe_id, step.map_now, step.first, r.T_world_cam, block_centres(self.block_map)
+        )
         self.pub_kf["rgb"].publish(conversions.rgb_msg(f.rgb, ns, CAMERA_FRAME))
         self.pub_kf["depth"].publish(conversions.depth_msg(f.depth_m, ns, CAMERA_FRAME))
         self.pub_kf["camera_info"].publish(conversions.camera_info_msg(f.intrinsics, None, ns, CAMERA_FRAME))
@@ -238,9 +250,11 @@ class TrackerNode(NebNode):
 
     def finish(self) -> None:
         n = 0 if self.frontend is None else self.frontend.n_frames
-        self.final_log(f"neb_slam tracker stopped: {n} frames tracked, {len(self.block_map)} blocks, "
-                       f"{self.input.n_dropped} dropped, {self.input.warnings.total} input warnings; "
-                       f"{self.input.n_accepted} frames in, mapping lag {self.mapping_lag()} (max {self._lag_max})")
+        self.final_log(
+            f"neb_slam tracker stopped: {n} frames tracked, {len(self.block_map)} blocks, "
+            f"{self.input.n_dropped} dropped, {self.input.warnings.total} input warnings; "
+            f"{self.input.n_accepted} frames in, mapping lag {self.mapping_lag()} (max {self._lag_max})"
+        )
 
 
 def main(args: Sequence[str] | None = None) -> int:

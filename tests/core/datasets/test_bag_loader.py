@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
@@ -90,16 +91,30 @@ def header(ts, stamp_ns: int, frame_id: str = "cam", ros1: bool = False):
 def image(ts, stamp_ns, encoding, pixels: np.ndarray, ros1=False):
     h, w = pixels.shape[:2]
     data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
-    return ts.types["sensor_msgs/msg/Image"](header=header(ts, stamp_ns, ros1=ros1), height=h, width=w,
-                                             encoding=encoding, is_bigendian=0, step=data.size // h, data=data)
+    return ts.types["sensor_msgs/msg/Image"](
+        header=header(ts, stamp_ns, ros1=ros1),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=0,
+        step=data.size // h,
+        data=data,
+    )
 
 
 def camera_info(ts, stamp_ns, intr=INTR, ros1=False):
     K = np.array([intr.fx, 0, intr.cx, 0, intr.fy, intr.cy, 0, 0, 1], dtype=np.float64)
     P = np.array([intr.fx, 0, intr.cx, 0, 0, intr.fy, intr.cy, 0, 0, 0, 1, 0], dtype=np.float64)
     roi = ts.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    fields = dict(header=header(ts, stamp_ns, ros1=ros1), height=intr.height, width=intr.width,
-                  distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi)
+    fields = dict(
+        header=header(ts, stamp_ns, ros1=ros1),
+        height=intr.height,
+        width=intr.width,
+        distortion_model="plumb_bob",
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
     arrays = dict(d=np.zeros(5), k=K, r=np.eye(3).reshape(-1), p=P)
     fields.update({k.upper() if ros1 else k: v for k, v in arrays.items()})
     return ts.types["sensor_msgs/msg/CameraInfo"](**fields)
@@ -108,8 +123,10 @@ def camera_info(ts, stamp_ns, intr=INTR, ros1=False):
 def pose_stamped(ts, stamp_ns, T, ros1=False):
     t = ts.types
     tx, ty, tz, qx, qy, qz, qw = pose_to_tum(T)
-    pose = t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=tx, y=ty, z=tz),
-                                       orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
+    pose = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=tx, y=ty, z=tz),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
     return t["geometry_msgs/msg/PoseStamped"](header=header(ts, stamp_ns, "world", ros1=ros1), pose=pose)
 
 
@@ -131,8 +148,13 @@ def rgb_of(i: int) -> np.ndarray:
     return np.random.default_rng(100 + i).integers(0, 256, (H, W, 3), dtype=np.uint8)
 
 
-def simple_messages(n=3, rgb_topic="/camera/rgb/image", depth_topic="/camera/depth/image",
-                    info_topic="/camera/rgb/camera_info", colour_encoding="rgb8"):
+def simple_messages(
+    n=3,
+    rgb_topic="/camera/rgb/image",
+    depth_topic="/camera/depth/image",
+    info_topic="/camera/rgb/camera_info",
+    colour_encoding="rgb8",
+):
     msgs = []
     for i in range(n):
         t = T0 + i * DT
@@ -181,19 +203,29 @@ def test_pickled_dataset_reads_frames(tmp_path):
 @pytest.mark.parametrize("encoding", ["bgr8", "mono8", "rgba8", "bgra8"])
 def test_colour_encodings_and_auto_picked_topics(tmp_path, encoding):
     rgb = rgb_of(0)
-    pix = {"bgr8": rgb[..., ::-1], "rgba8": np.dstack([rgb, np.full((H, W), 9, np.uint8)]),
-           "bgra8": np.dstack([rgb[..., ::-1], np.full((H, W), 9, np.uint8)]), "mono8": rgb[..., 1]}[encoding]
+    pix = {
+        "bgr8": rgb[..., ::-1],
+        "rgba8": np.dstack([rgb, np.full((H, W), 9, np.uint8)]),
+        "bgra8": np.dstack([rgb[..., ::-1], np.full((H, W), 9, np.uint8)]),
+        "mono8": rgb[..., 1],
+    }[encoding]
     t = T0
     # names the loader does not know: found by encoding; camera info found beside the colour topic
-    bag = write_ros2(tmp_path / "b", [
-        ("/cam/color/image_raw", t, image(TS2, t, encoding, pix)),
-        ("/cam/aligned_depth/image_raw", t, image(TS2, t, "16UC1", np.full((H, W), 1500, np.uint16))),
-        ("/cam/color/camera_info", t, camera_info(TS2, t)),
-        ("/cam/aligned_depth/camera_info", t, camera_info(TS2, t, INTR.scaled(2 * W, 2 * H))),
-    ])
+    bag = write_ros2(
+        tmp_path / "b",
+        [
+            ("/cam/color/image_raw", t, image(TS2, t, encoding, pix)),
+            ("/cam/aligned_depth/image_raw", t, image(TS2, t, "16UC1", np.full((H, W), 1500, np.uint16))),
+            ("/cam/color/camera_info", t, camera_info(TS2, t)),
+            ("/cam/aligned_depth/camera_info", t, camera_info(TS2, t, INTR.scaled(2 * W, 2 * H))),
+        ],
+    )
     ds = BagDataset(bag)
     assert (ds.topics.rgb, ds.topics.depth, ds.topics.camera_info) == (
-        "/cam/color/image_raw", "/cam/aligned_depth/image_raw", "/cam/color/camera_info")
+        "/cam/color/image_raw",
+        "/cam/aligned_depth/image_raw",
+        "/cam/color/camera_info",
+    )
     assert not ds.has_ground_truth
     f = ds[0]
     want = np.repeat(rgb[..., 1:2], 3, axis=2) if encoding == "mono8" else rgb
@@ -217,12 +249,20 @@ def test_ros1_bag_with_tum_topic_names(tmp_path):
             t = T0 + i * DT
             ser = TS1.serialize_ros1
             writer.write(c_info, t + 4_000_000, ser(camera_info(TS1, t, ros1=True), "sensor_msgs/msg/CameraInfo"))
-            writer.write(c_rgb, t + 5_000_000, ser(image(TS1, t, "rgb8", rgb_of(i), ros1=True), "sensor_msgs/msg/Image"))
+            writer.write(
+                c_rgb, t + 5_000_000, ser(image(TS1, t, "rgb8", rgb_of(i), ros1=True), "sensor_msgs/msg/Image")
+            )
             # depth 3 ms after colour, logged 7 ms late
-            writer.write(c_depth, t + 10_000_000,
-                         ser(image(TS1, t + 3_000_000, "32FC1", depth[i], ros1=True), "sensor_msgs/msg/Image"))
-            writer.write(c_gt, t + 1_000_000, ser(pose_stamped(TS1, t + 1_000_000, poses[i], ros1=True),
-                                                  "geometry_msgs/msg/PoseStamped"))
+            writer.write(
+                c_depth,
+                t + 10_000_000,
+                ser(image(TS1, t + 3_000_000, "32FC1", depth[i], ros1=True), "sensor_msgs/msg/Image"),
+            )
+            writer.write(
+                c_gt,
+                t + 1_000_000,
+                ser(pose_stamped(TS1, t + 1_000_000, poses[i], ros1=True), "geometry_msgs/msg/PoseStamped"),
+            )
             writer.write(c_other, t, ser(TS1.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"))
     ds = open_dataset(path)
     assert isinstance(ds, BagDataset)
@@ -241,8 +281,10 @@ def test_unpaired_frames_are_skipped_with_one_warning(tmp_path, caplog):
     rgb_t = [T0 + k * DT for k in range(4)]
     depth_t = [rgb_t[0] + 5_000_000, rgb_t[1] - 19_000_000, rgb_t[3] + 50_000_000]  # only 2 within 20 ms
     msgs += [("/camera/rgb/image", t, image(TS2, t, "rgb8", rgb_of(k))) for k, t in enumerate(rgb_t)]
-    msgs += [("/camera/depth/image", t, image(TS2, t, "16UC1", np.full((H, W), k + 1, np.uint16)))
-             for k, t in enumerate(depth_t)]
+    msgs += [
+        ("/camera/depth/image", t, image(TS2, t, "16UC1", np.full((H, W), k + 1, np.uint16)))
+        for k, t in enumerate(depth_t)
+    ]
     bag = write_ros2(tmp_path / "b", msgs)
     with caplog.at_level(logging.WARNING, logger=LOG):
         ds = BagDataset(bag)
@@ -259,9 +301,11 @@ def test_ground_truth_is_not_borrowed_by_a_frame_without_one(tmp_path):
     """Frames 10 ms apart; only the first has a pose: the second must get None, not its neighbour's."""
     msgs = simple_messages(1)
     t1 = T0 + 10_000_000
-    msgs += [("/camera/rgb/image", t1, image(TS2, t1, "rgb8", rgb_of(1))),
-             ("/camera/depth/image", t1, image(TS2, t1, "16UC1", np.ones((H, W), np.uint16))),
-             ("/ground_truth/pose", T0, pose_stamped(TS2, T0, np.eye(4)))]
+    msgs += [
+        ("/camera/rgb/image", t1, image(TS2, t1, "rgb8", rgb_of(1))),
+        ("/camera/depth/image", t1, image(TS2, t1, "16UC1", np.ones((H, W), np.uint16))),
+        ("/ground_truth/pose", T0, pose_stamped(TS2, T0, np.eye(4))),
+    ]
     ds = BagDataset(write_ros2(tmp_path / "b", msgs), sync_slop_s=0.004)
     assert len(ds) == 2
     np.testing.assert_array_equal(ds[0].T_world_cam, np.eye(4))
@@ -287,12 +331,19 @@ def test_missing_topic_is_named(tmp_path):
 
 
 def test_no_colour_topic_found(tmp_path):
-    bag = write_ros2(tmp_path / "b", simple_messages(1, rgb_topic="/left/image", colour_encoding="rgb8") +
-                     [("/right/image", T0, image(TS2, T0, "bgr8", rgb_of(0)))])
+    bag = write_ros2(
+        tmp_path / "b",
+        simple_messages(1, rgb_topic="/left/image", colour_encoding="rgb8")
+        + [("/right/image", T0, image(TS2, T0, "bgr8", rgb_of(0)))],
+    )
     with pytest.raises(DatasetError, match="2 Image topics have a colour encoding") as err:
         BagDataset(bag)
     assert "/left/image (rgb8)" in str(err.value) and "rgb_topic" in str(err.value)
-    assert BagDataset(bag, rgb_topic="/right/image", camera_info_topic="/camera/rgb/camera_info")[0].rgb.shape == (H, W, 3)
+    assert BagDataset(bag, rgb_topic="/right/image", camera_info_topic="/camera/rgb/camera_info")[0].rgb.shape == (
+        H,
+        W,
+        3,
+    )
 
 
 def test_unknown_encoding_names_topic(tmp_path):
@@ -305,8 +356,11 @@ def test_unknown_encoding_names_topic(tmp_path):
 def test_image_size_must_match_camera_info(tmp_path):
     msgs = [m for m in simple_messages(1) if m[0] != "/camera/depth/image"]
     msgs.append(("/camera/depth/image", T0, image(TS2, T0, "16UC1", np.ones((H, W + 2), np.uint16))))
-    with pytest.raises(DatasetError, match=r"topic /camera/depth/image: message 0 is 10x6 but camera info on "
-                                           r"/camera/rgb/camera_info says 8x6"):
+    with pytest.raises(
+        DatasetError,
+        match=r"topic /camera/depth/image: message 0 is 10x6 but camera info on "
+        r"/camera/rgb/camera_info says 8x6",
+    ):
         BagDataset(write_ros2(tmp_path / "b", msgs))
 
 
@@ -363,9 +417,16 @@ class Recording(Dataset):
 
 def frame_digest(f: RgbdFrame) -> tuple:
     """Exact identity of the images (SHA-256 of their bytes) plus the small fields as they are."""
-    return (hashlib.sha256(f.rgb.tobytes()).hexdigest(), f.rgb.shape,
-            hashlib.sha256(f.depth_m.tobytes()).hexdigest(), f.depth_m.shape, f.depth_m.dtype,
-            f.stamp_ns, f.intrinsics, f.extras.get("distortion"))
+    return (
+        hashlib.sha256(f.rgb.tobytes()).hexdigest(),
+        f.rgb.shape,
+        hashlib.sha256(f.depth_m.tobytes()).hexdigest(),
+        f.depth_m.shape,
+        f.depth_m.dtype,
+        f.stamp_ns,
+        f.intrinsics,
+        f.extras.get("distortion"),
+    )
 
 
 def test_tum_conversion_reproduces_every_frame(tum_dir, tmp_path):
@@ -374,8 +435,9 @@ def test_tum_conversion_reproduces_every_frame(tum_dir, tmp_path):
     The frames are compared through digests taken while converting, so the TUM PNGs are decoded once.
     """
     tum = Recording(TumDataset(tum_dir))
-    summary = write_bag(tum, tmp_path / "fr1_xyz", BagWriteOptions(storage="mcap", depth_encoding="32FC1"),
-                        progress=False)
+    summary = write_bag(
+        tum, tmp_path / "fr1_xyz", BagWriteOptions(storage="mcap", depth_encoding="32FC1"), progress=False
+    )
     assert summary.n_frames == len(tum) == 294 and summary.n_poses == 292  # 2 frames have no GT within 0.02 s
     bag = BagDataset(tmp_path / "fr1_xyz")
     assert len(bag) == 294 and bag.has_ground_truth

@@ -18,7 +18,9 @@ def test_all_formats_registered():
 
 
 def test_unknown_format():
-    with pytest.raises(DatasetError, match="unknown dataset format 'kitti'; choose one of: apartment, .*replica") as err:
+    with pytest.raises(
+        DatasetError, match="unknown dataset format 'kitti'; choose one of: apartment, .*replica"
+    ) as err:
         loader_class("kitti")
     assert "seven_scenes" in str(err.value)
 

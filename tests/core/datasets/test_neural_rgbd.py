@@ -11,19 +11,14 @@ from neb_slam_core.errors import DatasetError
 from neb_slam_core.types import Intrinsics
 
 # Hand-worked pose: a camera rotated +90 degrees about world y, at (1, 2, 3), in OpenGL axes.
-T_GL = np.array([[0.0, 0.0, 1.0, 1.0],
-                 [0.0, 1.0, 0.0, 2.0],
-                 [-1.0, 0.0, 0.0, 3.0],
-                 [0.0, 0.0, 0.0, 1.0]])
+T_GL = np.array([[0.0, 0.0, 1.0, 1.0], [0.0, 1.0, 0.0, 2.0], [-1.0, 0.0, 0.0, 3.0], [0.0, 0.0, 0.0, 1.0]])
 # OpenCV axes: y and z flipped, i.e. the second and third columns negated; translation unchanged.
-T_CV = np.array([[0.0, 0.0, -1.0, 1.0],
-                 [0.0, -1.0, 0.0, 2.0],
-                 [-1.0, 0.0, 0.0, 3.0],
-                 [0.0, 0.0, 0.0, 1.0]])
+T_CV = np.array([[0.0, 0.0, -1.0, 1.0], [0.0, -1.0, 0.0, 2.0], [-1.0, 0.0, 0.0, 3.0], [0.0, 0.0, 0.0, 1.0]])
 
 
 def make_neural_rgbd(root, fake, n=3, poses=None, filtered=True, skip_depth=()):
-    """images/imgK.png, depth_filtered/depthK.png (K*1000+500 mm) and depth/depthK.png (7000 mm), poses.txt, focal.txt."""
+    """images/imgK.png, depth_filtered/depthK.png (K*1000+500 mm) and depth/depthK.png (7000 mm), poses.txt,
+    focal.txt."""
     for k in range(n):
         fake.rgb(root / "images" / f"img{k}.png", color=(30 * k, 60, 90))
         if k not in skip_depth:

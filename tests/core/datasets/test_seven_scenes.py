@@ -83,8 +83,11 @@ def test_frames_without_depth_skipped_with_one_warning(tmp_path, fake, skip_warn
 def test_missing_pose(tmp_path, fake):
     make_seq(tmp_path, fake, n=3)
     (tmp_path / "frame-000001.pose.txt").unlink()
-    with pytest.raises(DatasetError, match=r"2 pose files for 3 colour images.*no pose for frame-000001\.color\.png "
-                                           r"\(expected frame-000001\.pose\.txt\)"):
+    with pytest.raises(
+        DatasetError,
+        match=r"2 pose files for 3 colour images.*no pose for frame-000001\.color\.png "
+        r"\(expected frame-000001\.pose\.txt\)",
+    ):
         SevenScenesDataset(tmp_path, intrinsics=SMALL)
 
 

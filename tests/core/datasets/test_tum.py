@@ -46,7 +46,8 @@ def make_tum(root, fake, size=(640, 480)):
         "# timestamp tx ty tz qx qy qz qw\n"
         f"0.9900 1.0 2.0 3.0 0 0 {S} {S}\n"
         "1.0350 -1.0 0.5 0.0 0 0 0 1\n"
-        "1.2000 9.0 9.0 9.0 0 0 0 1\n")
+        "1.2000 9.0 9.0 9.0 0 0 0 1\n"
+    )
     return root
 
 
@@ -97,8 +98,9 @@ def test_unknown_camera_lists_the_choices(tmp_path, fake):
 
 def test_intrinsics_json_takes_precedence(tmp_path, fake):
     root = make_tum(tmp_path / "rgbd_dataset_freiburg1_small", fake, size=(8, 6))
-    (root / "intrinsics.json").write_text(json.dumps({"fx": 4.5, "fy": 4.25, "cx": 3.5, "cy": 2.5,
-                                                      "width": 8, "height": 6}))
+    (root / "intrinsics.json").write_text(
+        json.dumps({"fx": 4.5, "fy": 4.25, "cx": 3.5, "cy": 2.5, "width": 8, "height": 6})
+    )
     ds = TumDataset(root)
     assert ds.intrinsics == Intrinsics(4.5, 4.25, 3.5, 2.5, 8, 6)
     assert ds[0].rgb.shape == (6, 8, 3)
@@ -161,11 +163,13 @@ def _read_groundtruth(path):
 
 def _quat_to_matrix(qx, qy, qz, qw):
     """Closed-form rotation matrix of a unit Hamilton quaternion."""
-    return np.array([
-        [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
-        [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
-        [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
+            [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
+            [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
+        ]
+    )
 
 
 def test_real_fr1_xyz(tum_dir, skip_warnings):
@@ -178,8 +182,11 @@ def test_real_fr1_xyz(tum_dir, skip_warnings):
     assert ds.intrinsics == Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480)
 
     f0 = ds[0]
-    first_rgb = next(line.split() for line in (tum_dir / "rgb.txt").read_text().splitlines()
-                     if line.strip() and not line.startswith("#"))
+    first_rgb = next(
+        line.split()
+        for line in (tum_dir / "rgb.txt").read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    )
     assert first_rgb[0] == "1305031102.175304"
     assert f0.stamp_ns == 1_305_031_102_175_304_000
 
@@ -194,8 +201,11 @@ def test_real_fr1_xyz(tum_dir, skip_warnings):
 
     # depth = PNG value / 5000, exactly, at a pixel with a reading
     # its depth partner: the nearest depth.txt stamp (within 0.02 s)
-    depth_rows = [line.split() for line in (tum_dir / "depth.txt").read_text().splitlines()
-                  if line.strip() and not line.startswith("#")]
+    depth_rows = [
+        line.split()
+        for line in (tum_dir / "depth.txt").read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    ]
     d_s = np.array([float(r[0]) for r in depth_rows])
     partner = depth_rows[int(np.argmin(np.abs(d_s - 1305031102.175304)))][1]
     raw = cv2.imread(str(tum_dir / partner), cv2.IMREAD_UNCHANGED)

@@ -55,8 +55,21 @@ def test_eval_two_files_directly(tmp_path, capsys):
     assert "3.000 cm" in capsys.readouterr().out
     assert not (run / "metrics.json").exists()  # nothing written without a run dir or --out
     out = tmp_path / "results"
-    assert main(["eval", "--est", str(run / "trajectory.txt"), "--gt", str(run / "groundtruth.txt"),
-                 "--out", str(out), "--no-plots"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--est",
+                str(run / "trajectory.txt"),
+                "--gt",
+                str(run / "groundtruth.txt"),
+                "--out",
+                str(out),
+                "--no-plots",
+            ]
+        )
+        == 0
+    )
     assert json.loads((out / "metrics.json").read_text())["ate_rmse_cm"] == pytest.approx(3.0, abs=1e-5)
     assert not (out / "trajectory.png").exists()
 
@@ -65,7 +78,9 @@ def test_eval_reports_unmatched_files_clearly(tmp_path, capsys):
     run = write_run(tmp_path / "run")
     lines = (run / "trajectory.txt").read_text().splitlines()
     # shift the estimate's clock by 5 s: nothing associates
-    shifted = [ln if ln.startswith("#") else f"{float(ln.split()[0]) + 5:.9f} " + " ".join(ln.split()[1:]) for ln in lines]
+    shifted = [
+        ln if ln.startswith("#") else f"{float(ln.split()[0]) + 5:.9f} " + " ".join(ln.split()[1:]) for ln in lines
+    ]
     (run / "trajectory.txt").write_text("\n".join(shifted) + "\n")
     assert main(["eval", str(run)]) == 2
     err = capsys.readouterr().err
@@ -86,8 +101,23 @@ def test_eval_with_meshes(tmp_path):
     square(1.0, 4.01).export(run / "mesh.ply")
     # exact case: same triangulation moved 1 cm along the normal (see test_eval_recon)
     square(1.0, 4.0).export(tmp_path / "gt.ply")
-    assert main(["eval", str(run), "--gt-mesh", str(tmp_path / "gt.ply"), "--n-points", "5000",
-                 "--depth-views", "0", "--no-cull", "--no-plots"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                str(run),
+                "--gt-mesh",
+                str(tmp_path / "gt.ply"),
+                "--n-points",
+                "5000",
+                "--depth-views",
+                "0",
+                "--no-cull",
+                "--no-plots",
+            ]
+        )
+        == 0
+    )
     m = json.loads((run / "metrics.json").read_text())
     # PLY stores float32 vertices: 4.01 becomes 4.0100002 (2e-5 cm)
     assert m["accuracy_cm"] == pytest.approx(1.0, abs=1e-4)
@@ -100,10 +130,22 @@ def test_eval_with_meshes(tmp_path):
     # identity rotation, looking along +z; the square z = 4 is inside each one's view)
     trimesh.util.concatenate([square(1.0, 4.0), square(1.0, -5.0)]).export(tmp_path / "gt2.ply")
     intr = Intrinsics(32.0, 32.0, 31.5, 23.5, 64, 48)
-    (run / "intrinsics.json").write_text(json.dumps({"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
-                                                     "width": intr.width, "height": intr.height}))
-    common = ["eval", str(run), "--gt-mesh", str(tmp_path / "gt2.ply"), "--n-points", "20000", "--cull-stride", "1",
-              "--no-plots"]
+    (run / "intrinsics.json").write_text(
+        json.dumps(
+            {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy, "width": intr.width, "height": intr.height}
+        )
+    )
+    common = [
+        "eval",
+        str(run),
+        "--gt-mesh",
+        str(tmp_path / "gt2.ply"),
+        "--n-points",
+        "20000",
+        "--cull-stride",
+        "1",
+        "--no-plots",
+    ]
     assert main(common + ["--depth-views", "0", "--no-cull"]) == 0
     whole = json.loads((run / "metrics.json").read_text())
     assert whole["completion_ratio_pct"] == pytest.approx(50.0, abs=1.5)
@@ -115,4 +157,6 @@ def test_eval_with_meshes(tmp_path):
     assert 1.0 <= culled["accuracy_cm"] < 1.5
 
     assert main(["eval", str(run), "--gt-mesh", str(tmp_path / "nope.ply"), "--depth-views", "0"]) == 2
-    assert main(["eval", str(run), "--gt-mesh", str(tmp_path / "gt.ply"), "--intrinsics", str(tmp_path / "no.json")]) == 2
+    assert (
+        main(["eval", str(run), "--gt-mesh", str(tmp_path / "gt.ply"), "--intrinsics", str(tmp_path / "no.json")]) == 2
+    )

@@ -98,11 +98,11 @@ def test_plane_shift_with_independent_samples_matches_the_poisson_expectation():
 def culling_scene() -> dict[str, trimesh.Trimesh]:
     """Patches around a camera at the origin looking along +z (SMALL_CAM)."""
     return {
-        "seen": patch(-0.5, 0.5, -0.5, 0.5, 2.0),        # in the frustum, in front
+        "seen": patch(-0.5, 0.5, -0.5, 0.5, 2.0),  # in the frustum, in front
         "hidden": patch(-0.25, 0.25, -0.25, 0.25, 4.0),  # in the frustum but entirely behind "seen"
         "behind_camera": patch(-0.5, 0.5, -0.5, 0.5, -2.0),
         "off_to_the_side": patch(5.0, 6.0, -0.5, 0.5, 2.0),  # x/z >= 2.5: outside the image
-        "too_far": patch(4.0, 5.0, -0.5, 0.5, 12.0),     # in the image, beyond the 10 m max depth
+        "too_far": patch(4.0, 5.0, -0.5, 0.5, 12.0),  # in the image, beyond the 10 m max depth
     }
 
 
@@ -164,8 +164,14 @@ def test_culling_everything_away_is_a_clear_error():
     gt = patch(-0.5, 0.5, -0.5, 0.5, 2.0)
     looking_away = make_pose(FLIP_Y, np.zeros(3))
     with pytest.raises(DatasetError, match="same world frame"):
-        evaluate_reconstruction(gt, gt, ReconConfig(n_points=100, depth_l1=NO_DEPTH),
-                                T_world_cams=looking_away[None], intrinsics=SMALL_CAM, progress=False)
+        evaluate_reconstruction(
+            gt,
+            gt,
+            ReconConfig(n_points=100, depth_l1=NO_DEPTH),
+            T_world_cams=looking_away[None],
+            intrinsics=SMALL_CAM,
+            progress=False,
+        )
 
 
 # ---------------------------------------------------------------------------------------------- depth

@@ -172,16 +172,19 @@ def test_association_drops_unmatched_stamps_and_uses_each_gt_pose_once():
     # ground truth at 100.00, 100.10, ..., 100.90 s
     gt = Trajectory(stamps(10), poses_at(rng.normal(size=(10, 3)), rng))
     offsets_ms = {
-        0: 0,      # exact
-        1: 15,     # within 0.02 s
-        2: 20,     # on the boundary: kept
-        3: 21,     # just outside: dropped
-        4: 50,     # half way: dropped
+        0: 0,  # exact
+        1: 15,  # within 0.02 s
+        2: 20,  # on the boundary: kept
+        3: 21,  # just outside: dropped
+        4: 50,  # half way: dropped
         5: -5,
-        6: -30,    # dropped
+        6: -30,  # dropped
     }
-    est_ns = np.array([gt.stamps_ns[i] + ms * 1_000_000 for i, ms in offsets_ms.items()]
-                      + [gt.stamps_ns[9] - 3_000_000, gt.stamps_ns[9] + 8_000_000], dtype=np.int64)
+    est_ns = np.array(
+        [gt.stamps_ns[i] + ms * 1_000_000 for i, ms in offsets_ms.items()]
+        + [gt.stamps_ns[9] - 3_000_000, gt.stamps_ns[9] + 8_000_000],
+        dtype=np.int64,
+    )
     est = Trajectory(est_ns, np.tile(np.eye(4), (len(est_ns), 1, 1)))
     pair = associate_trajectories(est, gt)
     # two estimates near gt[9]: only the closer (-3 ms) keeps it

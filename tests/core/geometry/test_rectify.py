@@ -22,7 +22,7 @@ def plane_depth(x_n: np.ndarray, y_n: np.ndarray) -> np.ndarray:
 def raw_frame() -> RgbdFrame:
     """What a camera with the fr1 distortion records of the plane: each raw pixel sees the pinhole ray of
     its undistorted position (OpenCV's undistortPoints inverts the lens model)."""
-    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(np.float64)
+    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float64)
     raw = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
     norm = cv2.undistortPoints(raw, INTR.K, np.array(FR1))[:, 0, :]
     depth = plane_depth(norm[:, 0], norm[:, 1]).reshape(INTR.height, INTR.width).astype(np.float32)
@@ -38,7 +38,7 @@ def test_rectified_depth_is_the_pinhole_depth_of_the_plane():
     k = frame.intrinsics
     assert k == rectifier.intrinsics(INTR, FR1) and (k.width, k.height) == (INTR.width, INTR.height)
     assert k.fx > INTR.fx  # zoomed in slightly, so that no pixel falls outside the raw image
-    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(np.float64)
+    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float64)
     expected = plane_depth((u - k.cx) / k.fx, (v - k.cy) / k.fy)
     ok = frame.depth_m > 0
     assert ok.all()  # every rectified pixel was seen by the raw camera

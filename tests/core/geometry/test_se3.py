@@ -17,5 +17,7 @@ def test_interpolated_correction_ends():
     assert np.allclose(interpolate_correction(delta, pivot, 0.0), np.eye(4))
     half = interpolate_correction(delta, pivot, 0.5)
     # half the rotation angle, half the pivot's displacement
-    assert np.isclose(Rotation.from_matrix(half[:3, :3]).magnitude(), 0.5 * Rotation.from_matrix(delta[:3, :3]).magnitude())
+    assert np.isclose(
+        Rotation.from_matrix(half[:3, :3]).magnitude(), 0.5 * Rotation.from_matrix(delta[:3, :3]).magnitude()
+    )
     assert np.allclose(half[:3, :3] @ pivot + half[:3, 3] - pivot, 0.5 * (delta[:3, :3] @ pivot + delta[:3, 3] - pivot))

@@ -41,14 +41,21 @@ T0 = 1_700_000_000_123_456_789
 
 def header(stamp_ns: int = T0, frame_id: str = "cam"):
     sec, ns = divmod(stamp_ns, 1_000_000_000)
-    return TS.types["std_msgs/msg/Header"](stamp=TS.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns),
-                                           frame_id=frame_id)
+    return TS.types["std_msgs/msg/Header"](
+        stamp=TS.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns), frame_id=frame_id
+    )
 
 
 def image(encoding: str, data: bytes, width: int, height: int, step: int, bigendian: int = 0):
-    return TS.types["sensor_msgs/msg/Image"](header=header(), height=height, width=width, encoding=encoding,
-                                             is_bigendian=bigendian, step=step,
-                                             data=np.frombuffer(data, dtype=np.uint8).copy())
+    return TS.types["sensor_msgs/msg/Image"](
+        header=header(),
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=bigendian,
+        step=step,
+        data=np.frombuffer(data, dtype=np.uint8).copy(),
+    )
 
 
 class Frames(Dataset):
@@ -69,8 +76,9 @@ class Frames(Dataset):
         mm[0, 0] = 0  # one invalid pixel
         depth = mm.astype(np.float32) / np.float32(1000.0)
         pose = None if i == 1 else make_pose(Rotation.from_rotvec([0.1 * i, -0.2, 0.3]).as_matrix(), [i, 2.0, -1.5])
-        return RgbdFrame(rgb, depth, INTR, T0 + i * 33_333_333, pose,
-                         extras={"distortion": (0.1, -0.2, 0.003, 0.004, 0.5)})
+        return RgbdFrame(
+            rgb, depth, INTR, T0 + i * 33_333_333, pose, extras={"distortion": (0.1, -0.2, 0.003, 0.004, 0.5)}
+        )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -187,7 +195,9 @@ def test_write_bag_contents(tmp_path, storage):
     msgs = read_all(tmp_path / "b")
     t = BagTopics()
     assert {k: len(v) for k, v in msgs.items()} == {t.rgb: 3, t.depth: 3, t.camera_info: 3, t.ground_truth: 2}
-    assert msgs[t.rgb][0][2] == "sensor_msgs/msg/Image" and msgs[t.ground_truth][0][2] == "geometry_msgs/msg/PoseStamped"
+    assert (
+        msgs[t.rgb][0][2] == "sensor_msgs/msg/Image" and msgs[t.ground_truth][0][2] == "geometry_msgs/msg/PoseStamped"
+    )
     for topic, items in msgs.items():
         for log_ns, msg, _ in items:
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -197,8 +207,9 @@ def test_write_bag_contents(tmp_path, storage):
         f = frames[i]
         assert log_ns == f.stamp_ns
         assert (msg.encoding, msg.width, msg.height, msg.step, msg.is_bigendian) == ("16UC1", W, H, 2 * W, 0)
-        np.testing.assert_array_equal(np.frombuffer(msg.data, "<u2").reshape(H, W),
-                                      np.rint(f.depth_m.astype(np.float64) * 1000).astype(np.uint16))
+        np.testing.assert_array_equal(
+            np.frombuffer(msg.data, "<u2").reshape(H, W), np.rint(f.depth_m.astype(np.float64) * 1000).astype(np.uint16)
+        )
     rgb0 = msgs[t.rgb][0][1]
     assert (rgb0.encoding, rgb0.step) == ("rgb8", 3 * W)
     np.testing.assert_array_equal(rgb0.data.reshape(H, W, 3), frames[0].rgb)
@@ -220,7 +231,12 @@ def test_write_bag_custom_topics_and_max_frames(tmp_path):
     topics = BagTopics(rgb="/a/rgb", depth="/a/depth", camera_info="/a/info", ground_truth="/gt")
     summary = write_bag(Frames(3), tmp_path / "b", BagWriteOptions(topics=topics), max_frames=2, progress=False)
     assert summary.n_frames == 2
-    assert {k: len(v) for k, v in read_all(tmp_path / "b").items()} == {"/a/rgb": 2, "/a/depth": 2, "/a/info": 2, "/gt": 1}
+    assert {k: len(v) for k, v in read_all(tmp_path / "b").items()} == {
+        "/a/rgb": 2,
+        "/a/depth": 2,
+        "/a/info": 2,
+        "/gt": 1,
+    }
 
 
 def test_write_bag_refuses_to_overwrite(tmp_path):

@@ -9,9 +9,9 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # for `from loop_scene import ...`
 
-from loop_scene import render_loop_views  # noqa: E402
+from loop_scene import render_loop_views
 
-from neb_slam_core.loop.vocabulary import Vocabulary  # noqa: E402
+from neb_slam_core.loop.vocabulary import Vocabulary
 
 
 @pytest.fixture(scope="session")

@@ -16,8 +16,10 @@ FRAME_NS = 33_333_333
 def pose_error(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (degrees) of ``T_gt^-1 T_est``."""
     E = invert(T_gt) @ T_est
-    return (float(np.linalg.norm(E[:3, 3])),
-            float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)))))
+    return (
+        float(np.linalg.norm(E[:3, 3])),
+        float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)))),
+    )
 
 
 def render_loop_views() -> tuple[dict, object]:

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from loop_scene import FRAME_NS, LOOP_FRAMES, pose_error
 from scipy.spatial.transform import Rotation
 
 from neb_slam_core.config import LoopConfig
 from neb_slam_core.geometry.se3 import invert, make_pose
 from neb_slam_core.loop.closer import LoopCloser
 from neb_slam_core.types import RgbdFrame
-
-from loop_scene import FRAME_NS, LOOP_FRAMES, pose_error
 
 #: the drift the end of the loop (frames 270-290) carries: 25 cm and 4 degrees about the vertical,
 #: applied in the world frame (what accumulated tracking error looks like)
@@ -33,7 +32,7 @@ def closed(vocabulary, loop_views):
     drifted = np.array([DRIFT @ T if f >= 270 else T for f, T in zip(LOOP_FRAMES, gt)])
     for i, f in enumerate(LOOP_FRAMES[:-1]):
         closer.add_keyframe(i, frame_of(views, intr, f))
-        event, _ = closer.close(i, drifted[:i + 1], frame_of(views, intr, f))
+        event, _ = closer.close(i, drifted[: i + 1], frame_of(views, intr, f))
         assert event is None or event.loop_ids, "only the end of the loop may close it"
     last = len(LOOP_FRAMES) - 1
     closer.add_keyframe(last, frame_of(views, intr, LOOP_FRAMES[last]))
@@ -56,7 +55,7 @@ def test_the_drifted_end_is_put_back_on_the_ground_truth(closed):
 def test_keyframes_up_to_the_loop_start_keep_their_poses(closed):
     event, corrected, drifted, _ = closed
     start = event.start_id
-    np.testing.assert_array_equal(corrected[:start + 1], drifted[:start + 1])
+    np.testing.assert_array_equal(corrected[: start + 1], drifted[: start + 1])
     # the end's neighbours (frames 270, 280) carried the same drift: they come back most of the way
     for i in (7, 8):
         before, _ = pose_error(drifted[i], closed[3][i])
@@ -90,12 +89,12 @@ def test_keyframes_are_registered_against_the_ones_before_them(vocabulary, loop_
     closer = LoopCloser(LoopConfig(temporal_window=2, neighbours=1), vocabulary, seed=0)
     for i, f in enumerate(frames):
         closer.add_keyframe(i, frame_of(views, intr, f))
-        closer.close(i, handed[:i + 1], frame_of(views, intr, f))
+        closer.close(i, handed[: i + 1], frame_of(views, intr, f))
     assert set(closer.registrations) == {(0, 1), (2, 3)}, sorted(closer.registrations)
     for (i, j), Z in closer.registrations.items():
         err_m, err_deg = pose_error(Z, invert(gt[i]) @ gt[j])
         assert err_m < 0.003 and err_deg < 0.1, ((i, j), err_m, err_deg)
-    assert pose_error(invert(handed[2]) @ handed[3], invert(gt[2]) @ gt[3])[0] > 0.025   # what tracking said
+    assert pose_error(invert(handed[2]) @ handed[3], invert(gt[2]) @ gt[3])[0] > 0.025  # what tracking said
 
 
 def test_no_registration_edges_when_switched_off(vocabulary, loop_views):
@@ -104,5 +103,5 @@ def test_no_registration_edges_when_switched_off(vocabulary, loop_views):
     gt = np.stack([views[f][1] for f in (270, 280)])
     for i, f in enumerate((270, 280)):
         closer.add_keyframe(i, frame_of(views, intr, f))
-        closer.close(i, gt[:i + 1], frame_of(views, intr, f))
+        closer.close(i, gt[: i + 1], frame_of(views, intr, f))
     assert closer.registrations == {}

@@ -5,9 +5,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neb_slam_core.geometry.se3 import invert, make_pose
-from neb_slam_core.loop.correction import (_shared_correction, correction_size, fit_loop_pose, merge_correction,
-                                           propagate_correction, reprojection_residuals, sample_pixels,
-                                           strided_view)
+from neb_slam_core.loop.correction import (
+    _shared_correction,
+    correction_size,
+    fit_loop_pose,
+    merge_correction,
+    propagate_correction,
+    reprojection_residuals,
+    sample_pixels,
+    strided_view,
+)
 from neb_slam_core.types import Intrinsics
 
 K = Intrinsics(120.0, 120.0, 79.5, 59.5, 160, 120)
@@ -16,7 +23,7 @@ BOX_LO, BOX_HI = np.array([-2.0, -1.5, -1.2]), np.array([2.5, 1.3, 3.0])
 
 def box_depth(T_world_cam: np.ndarray, k: Intrinsics = K) -> np.ndarray:
     """Depth (z in the camera) of the inside of an axis-aligned box, by ray casting its six walls."""
-    v, u = np.mgrid[0:k.height, 0:k.width].astype(np.float64)
+    v, u = np.mgrid[0 : k.height, 0 : k.width].astype(np.float64)
     dirs_cam = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
     d = dirs_cam @ T_world_cam[:3, :3].T
     o = T_world_cam[:3, 3]
@@ -142,17 +149,17 @@ def test_registration_edges_send_the_correction_to_where_tracking_drifted():
     n, s, m, delta = 10, 0.2, 4, 0.05
     gt = np.stack([pose([0, 0, 0], [s * k, 0.0, 0.0]) for k in range(n + 1)])
     tracked = gt.copy()
-    tracked[m + 1:, 0, 3] += delta
+    tracked[m + 1 :, 0, 3] += delta
     registrations = {(k, k + 1): invert(gt[k]) @ gt[k + 1] for k in range(n)}
-    registrations[(0, 5)] = pose([0, 0, 30.0], [9.0, 9.0, 9.0])   # starts outside the chain (1..n): ignored
+    registrations[(0, 5)] = pose([0, 0, 30.0], [9.0, 9.0, 9.0])  # starts outside the chain (1..n): ignored
     out = propagate_correction(tracked, 1, n, gt[-1], registrations)
 
-    w2, w2_wrong = 1.0 / (s + 0.01), 1.0 / (s + delta + 0.01)     # squared weights: 1 / (length + 1 cm)
+    w2, w2_wrong = 1.0 / (s + 0.01), 1.0 / (s + delta + 0.01)  # squared weights: 1 / (length + 1 cm)
     precision = np.full(n, 2 * w2)
     precision[m] = w2 + w2_wrong
     want = np.full(n, s)
     want[m] += delta * w2_wrong / (w2 + w2_wrong)
-    free = np.arange(1, n)                                        # steps 1..n-1 lie between the held ends
+    free = np.arange(1, n)  # steps 1..n-1 lie between the held ends
     steps = want.copy()
     steps[free] -= (want[free].sum() - s * (n - 1)) * (1 / precision[free]) / (1 / precision[free]).sum()
     expected_x = np.concatenate([[0.0], np.cumsum(steps)])
@@ -171,8 +178,8 @@ def test_propagation_holds_the_start_and_moves_the_rest_with_the_end():
     poses = np.stack([pose([0, 0, 0], [float(i), 0.0, 0.0]) for i in range(7)])
     end_new = pose([0, 0, 0], [5.0, 0.4, 0.0])
     out = propagate_correction(poses, 1, 5, end_new)
-    np.testing.assert_array_equal(out[:2], poses[:2])          # up to the loop's older end: held
-    np.testing.assert_array_equal(out[5], end_new)             # the fitted pose, exactly
+    np.testing.assert_array_equal(out[:2], poses[:2])  # up to the loop's older end: held
+    np.testing.assert_array_equal(out[5], end_new)  # the fitted pose, exactly
     np.testing.assert_allclose(out[6], pose([0, 0, 0], [6.0, 0.4, 0.0]), atol=1e-12)  # rigidly with the end
     lateral = out[1:6, 1, 3]
     assert np.all(np.diff(lateral) > 0) and np.all(np.abs(out[2:5, 0, 3] - [2, 3, 4]) < 0.01)
@@ -191,7 +198,7 @@ def test_propagation_keeps_relative_poses_near_the_end():
     # the 4 degrees and 11 cm are spread over 20 edges: none changes by more than a fraction of them
     changes = [correction_size(invert(poses[k - 1]) @ poses[k], invert(out[k - 1]) @ out[k]) for k in range(1, 21)]
     assert max(cm for cm, _ in changes) < 2.0 and max(deg for _, deg in changes) < 0.6, changes
-    assert sum(deg for _, deg in changes) > 3.0   # together they make up the turn
+    assert sum(deg for _, deg in changes) > 3.0  # together they make up the turn
     np.testing.assert_allclose(out[20], end_new, atol=1e-12)
     with pytest.raises(ValueError, match="start_id"):
         propagate_correction(poses, 5, 5, end_new)

@@ -27,7 +27,7 @@ def test_inverted_index_scores_equal_the_dense_computation():
     rng = np.random.default_rng(0)
     vectors = [random_bow(rng, int(rng.integers(5, 40))) for _ in range(60)]
     db = KeyframeDatabase(N_WORDS)
-    ids = [100 + 3 * i for i in range(len(vectors))]       # caller ids need not be dense
+    ids = [100 + 3 * i for i in range(len(vectors))]  # caller ids need not be dense
     for i, v in zip(ids, vectors):
         db.add(i, v)
     for _ in range(10):
@@ -40,7 +40,7 @@ def test_inverted_index_scores_equal_the_dense_computation():
         assert sorted(got) == sorted(sharing)
         for i, s in zip(ids, expected):
             assert got.get(i, 0.0) == pytest.approx(s, abs=1e-12)
-        assert np.all(np.diff(result.scores) <= 0)          # best first
+        assert np.all(np.diff(result.scores) <= 0)  # best first
 
 
 def test_a_keyframe_queried_with_its_own_vector_scores_one():
@@ -89,4 +89,4 @@ def test_posting_lists_grow_past_their_capacity():
         db.add(i, BowVector(np.array([0, 1 + i % 2]), np.array([0.5, 0.5])))
     r = db.query(BowVector(np.array([0]), np.array([1.0])))
     assert len(r) == 100 and r.scores.tolist() == pytest.approx([0.5] * 100)
-    assert r.keyframe_ids.tolist() == list(range(100))     # ties: insertion order
+    assert r.keyframe_ids.tolist() == list(range(100))  # ties: insertion order

@@ -6,14 +6,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from loop_scene import FRAME_NS, LOOP_FRAMES, pose_error
 
 from neb_slam_core.config import LoopConfig
 from neb_slam_core.geometry.se3 import invert, make_pose
 from neb_slam_core.loop.detector import LoopDetector, backproject, keypoint_depths, match_descriptors
-from neb_slam_core.loop.vocabulary import Vocabulary, l1_score
+from neb_slam_core.loop.vocabulary import l1_score
 from neb_slam_core.types import Intrinsics
-
-from loop_scene import FRAME_NS, LOOP_FRAMES, pose_error
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +34,7 @@ def test_a_keyframe_matched_to_itself_scores_one(loop_detector):
 
 def test_the_end_of_the_loop_finds_its_start_with_the_right_relative_pose(loop_detector, loop_views):
     views, _ = loop_views
-    q = loop_detector.query(len(LOOP_FRAMES) - 1)               # frame 290, next to frame 0 again
+    q = loop_detector.query(len(LOOP_FRAMES) - 1)  # frame 290, next to frame 0 again
     assert q.detection is not None
     loop_ids = [c.keyframe_id for c in q.detection.loop_keyframes]
     assert 1 <= len(loop_ids) <= 2 and all(LOOP_FRAMES[i] <= 40 for i in loop_ids)
@@ -59,15 +58,16 @@ def test_the_papers_rule_threshold_window_and_choice_of_two(loop_detector):
         assert all(abs(int(c) - p) > 2 for c in q.candidate_ids)
         assert len(q.candidate_ids) <= det.cfg.top_k and np.all(np.diff(q.candidate_scores) <= 0)
         # checked: exactly the candidates at or above the threshold
-        assert [c for c, _ in q.checks] == [int(c) for c, s in zip(q.candidate_ids, q.candidate_scores)
-                                            if s >= q.threshold]
+        assert [c for c, _ in q.checks] == [
+            int(c) for c, s in zip(q.candidate_ids, q.candidate_scores) if s >= q.threshold
+        ]
         verified = [c for c, check in q.checks if check.accepted]
         if q.detection is None:
             assert not verified
             continue
         r = q.detection.loop_keyframes
-        assert r[0].keyframe_id == verified[0]                  # r1: the highest score
-        if len(verified) > 1:                                   # r2: the largest time gap of the others
+        assert r[0].keyframe_id == verified[0]  # r1: the highest score
+        if len(verified) > 1:  # r2: the largest time gap of the others
             gaps = {c: abs(det.keyframe(c).stamp_ns - kf.stamp_ns) for c in verified[1:]}
             assert len(r) == 2 and gaps[r[1].keyframe_id] == max(gaps.values())
             n_pairs += 1
@@ -95,13 +95,13 @@ def test_the_geometric_check_rejects_a_look_alike_with_wrong_geometry(loop_detec
     fake = replace(kf, keyframe_id=99, keypoint_depth_m=0.6 * kf.keypoint_depth_m)
     assert l1_score(kf.bow, fake.bow) == pytest.approx(1.0)
     assert not loop_detector.verify(kf, fake).accepted
-    assert loop_detector.verify(kf, kf).accepted                # the unscrambled one passes
+    assert loop_detector.verify(kf, kf).accepted  # the unscrambled one passes
 
 
 def test_keypoint_depths_drop_edges_and_holes():
     depth = np.full((10, 10), 2.0, np.float32)
-    depth[:, 6:] = 4.0            # an occlusion edge between columns 5 and 6
-    depth[8, 1] = 0.0             # a hole
+    depth[:, 6:] = 4.0  # an occlusion edge between columns 5 and 6
+    depth[8, 1] = 0.0  # a hole
     kp = np.array([[2.0, 2.0], [5.0, 5.0], [8.0, 5.0], [1.0, 7.0], [2.4, 3.6]], np.float32)
     assert keypoint_depths(depth, kp).tolist() == [2.0, 0.0, 4.0, 0.0, 2.0]
 
@@ -111,10 +111,10 @@ def test_backproject_and_match_descriptors_by_hand():
     pts = backproject(np.array([[50.0, 40.0], [150.0, 40.0]]), np.array([2.0, 1.0]), k)
     assert pts.tolist() == [[0.0, 0.0, 2.0], [1.0, 0.0, 1.0]]
     train = np.zeros((3, 32), np.uint8)
-    train[1, :4] = 0xFF           # 32 bits from train 0
-    train[2, :8] = 0xFF           # 64 bits from train 0
+    train[1, :4] = 0xFF  # 32 bits from train 0
+    train[2, :8] = 0xFF  # 64 bits from train 0
     query = train[[1, 0, 2, 0]].copy()
-    query[2, 0] ^= 0x01           # 1 bit from train 2, 63 from train 0 -> passes the ratio test
+    query[2, 0] ^= 0x01  # 1 bit from train 2, 63 from train 0 -> passes the ratio test
     qi, ti = match_descriptors(query, train, ratio=0.8, max_distance=64)
     # query 3 duplicates query 1 (train 0): only the first (lowest query index) keeps train 0
     assert qi.tolist() == [0, 1, 2] and ti.tolist() == [1, 0, 2]

@@ -9,14 +9,23 @@ import numpy as np
 import pytest
 
 from neb_slam_core.errors import VocabularyError
-from neb_slam_core.loop.vocabulary import (FORMAT_VERSION, BowVector, TrainingRecord, Vocabulary, hamming_distance,
-                                           l1_score, majority_centre, shipped_vocabulary_path, train_vocabulary)
+from neb_slam_core.loop.vocabulary import (
+    FORMAT_VERSION,
+    BowVector,
+    TrainingRecord,
+    Vocabulary,
+    hamming_distance,
+    l1_score,
+    majority_centre,
+    shipped_vocabulary_path,
+    train_vocabulary,
+)
 
 
 def desc(*bytes_) -> np.ndarray:
     """A (32,) descriptor whose first bytes are ``bytes_`` and the rest 0."""
     d = np.zeros(32, np.uint8)
-    d[:len(bytes_)] = bytes_
+    d[: len(bytes_)] = bytes_
     return d
 
 
@@ -67,11 +76,11 @@ def four_cluster_corpus() -> tuple[list[np.ndarray], np.ndarray]:
     rng = np.random.default_rng(1)
     protos = np.zeros((4, 32), np.uint8)
     for f in range(4):
-        protos[f, 8 * f: 8 * f + 8] = 0xFF
+        protos[f, 8 * f : 8 * f + 8] = 0xFF
 
     def noisy(f: int, n: int) -> np.ndarray:
         d = np.repeat(protos[f][None], n, axis=0)
-        flips = rng.integers(0, 256, n)          # one random bit flipped in each copy
+        flips = rng.integers(0, 256, n)  # one random bit flipped in each copy
         d[np.arange(n), flips // 8] ^= (1 << (flips % 8)).astype(np.uint8)
         return d
 
@@ -88,7 +97,7 @@ def test_tf_idf_of_a_toy_corpus():
     images, protos = four_cluster_corpus()
     vocab = train_vocabulary(images, branching=4, depth=1, seed=0)
     assert vocab.n_words == 4
-    word = vocab.words(protos)                     # the word of each family
+    word = vocab.words(protos)  # the word of each family
     assert sorted(word.tolist()) == [0, 1, 2, 3]
     # idf = log(N / images containing the word): family 0 in 4 of 4, 1 in 2, 2 and 3 in 1
     assert vocab.idf[word].tolist() == pytest.approx([0.0, math.log(2), math.log(4), math.log(4)])
@@ -96,7 +105,7 @@ def test_tf_idf_of_a_toy_corpus():
     v = vocab.transform(images[1])
     assert v.word_ids.tolist() == [word[1]] and v.weights.tolist() == pytest.approx([1.0])
     # families 0 x3, 1 x2, 2 x3: tf-idf 3/8 * 0, 2/8 * log 2, 3/8 * log 4, then L1-normalised
-    mixed = np.concatenate([images[1], images[2][1:]])   # families 0 x3, 1 x2, 2 x3
+    mixed = np.concatenate([images[1], images[2][1:]])  # families 0 x3, 1 x2, 2 x3
     w1, w2 = 2 / 8 * math.log(2), 3 / 8 * math.log(4)
     v = vocab.transform(mixed)
     expected = {int(word[1]): w1 / (w1 + w2), int(word[2]): w2 / (w1 + w2)}
@@ -112,7 +121,7 @@ def test_descent_matches_a_per_descriptor_reference_and_training_labels():
     assert 9 < vocab.n_words <= 27
     queries = rng.integers(0, 256, (50, 32), dtype=np.uint8)
 
-    def reference_word(d: np.ndarray) -> int:   # the obvious loop, one descriptor at a time
+    def reference_word(d: np.ndarray) -> int:  # the obvious loop, one descriptor at a time
         node = 0
         while vocab.children[node, 0] >= 0:
             kids = [c for c in vocab.children[node] if c >= 0]
@@ -126,7 +135,7 @@ def test_descent_matches_a_per_descriptor_reference_and_training_labels():
 
 def test_an_image_matched_to_itself_scores_one_and_differs_from_another():
     images, _ = four_cluster_corpus()
-    vocab = train_vocabulary(images, branching=4, depth=1, seed=0)   # one word per family
+    vocab = train_vocabulary(images, branching=4, depth=1, seed=0)  # one word per family
     vectors = [vocab.transform(i) for i in images]
     assert [l1_score(v, v) for v in vectors] == pytest.approx([1.0] * 4)
     # images 2 and 3 share only family 0, which every image has (idf 0): nothing in common
@@ -149,7 +158,7 @@ def test_file_round_trip(tmp_path):
     images, _ = four_cluster_corpus()
     vocab = train_vocabulary(images, branching=4, depth=2, seed=0, source="toy corpus")
     path = vocab.save(tmp_path / "v.npz")
-    assert path == tmp_path / "v.npz" and path.is_file()    # no second ".npz" appended
+    assert path == tmp_path / "v.npz" and path.is_file()  # no second ".npz" appended
     back = Vocabulary.load(path)
     for name in ("centres", "children", "node_word", "idf"):
         assert np.array_equal(getattr(back, name), getattr(vocab, name)), name
@@ -190,6 +199,6 @@ def test_the_shipped_vocabulary_loads_fast_and_has_about_ten_thousand_words():
     vocab = Vocabulary.load("")
     assert time.perf_counter() - t0 < 1.0
     assert (vocab.branching, vocab.depth) == (10, 4)
-    assert 5000 <= vocab.n_words <= 10 ** 4
+    assert 5000 <= vocab.n_words <= 10**4
     assert vocab.training.n_images > 0 and "vocab train" in vocab.training.source
     assert shipped_vocabulary_path().stat().st_size < 5e6

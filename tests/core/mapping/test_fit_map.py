@@ -60,8 +60,14 @@ def test_mesh_accuracy_and_completion_within_one_and_a_half_voxels(fitted):
     mesh = extract_mesh(block_map, MeshConfig(voxel_size_m=MESH_VOXEL_M), observed)
     gt = trimesh.load(scene / "mesh.ply", process=False)
     poses = np.stack([f.T_world_cam for f in train])
-    r = evaluate_reconstruction(mesh, gt, ReconConfig(n_points=50_000, depth_l1=DepthL1Config(n_views=0)),
-                                poses, train[0].intrinsics, progress=False)
+    r = evaluate_reconstruction(
+        mesh,
+        gt,
+        ReconConfig(n_points=50_000, depth_l1=DepthL1Config(n_views=0)),
+        poses,
+        train[0].intrinsics,
+        progress=False,
+    )
     limit_cm = 1.5 * 100 * MESH_VOXEL_M
     assert r.accuracy_cm < limit_cm and r.completion_cm < limit_cm, r
     assert r.completion_ratio_pct > 90.0, r

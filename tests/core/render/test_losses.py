@@ -45,11 +45,11 @@ def test_sdf_and_free_space_hand_worked():
     sdf = torch.tensor([[0.5, 0.6, -0.2, 7.0], [9.0, 9.0, 9.0, 9.0]])
     l_sdf, l_fs = sdf_terms(sdf)
     assert torch.isclose(l_fs, torch.tensor(0.25))
-    assert torch.isclose(l_sdf, torch.tensor((0.01 ** 2 + 0.03 ** 2) / 2), atol=1e-9)
+    assert torch.isclose(l_sdf, torch.tensor((0.01**2 + 0.03**2) / 2), atol=1e-9)
     # invalid samples do not count
     valid[0, 1] = False
     l_sdf, _ = sdf_terms(sdf)
-    assert torch.isclose(l_sdf, torch.tensor(0.03 ** 2), atol=1e-9)
+    assert torch.isclose(l_sdf, torch.tensor(0.03**2), atol=1e-9)
 
 
 def test_smoothness_sums_per_point_and_averages_over_valid_points():
@@ -62,8 +62,10 @@ def test_smoothness_sums_per_point_and_averages_over_valid_points():
 
 
 def test_weighted_total_in_the_terms_order():
-    ones = {name: Residual(torch.ones(1, 1), torch.ones(1, 1, dtype=torch.bool), w, "depth")
-            for name, w in (("colour", 5), ("depth", 0.1), ("sdf", 1000), ("free_space", 10), ("smoothness", 1e-6))}
+    ones = {
+        name: Residual(torch.ones(1, 1), torch.ones(1, 1, dtype=torch.bool), w, "depth")
+        for name, w in (("colour", 5), ("depth", 0.1), ("sdf", 1000), ("free_space", 10), ("smoothness", 1e-6))
+    }
     t = combine(ones)
     assert torch.isclose(t.total, torch.tensor(5 + 0.1 + 1000 + 10 + 1e-6))
     assert set(t.as_floats()) == {"colour", "depth", "sdf", "free_space", "smoothness", "total"}
@@ -83,8 +85,11 @@ def test_entry_weights_give_the_weighted_loss(per_row):
     assert torch.isclose((w * r * r).sum(), 2.5 * term.value(), rtol=1e-6)
     assert bool((w[~mask] == 0).all())
     # by hand for row 0: mean (or sum) of its masked squares, then the mean over the 6 rows with entries
-    rows = [((r[i][mask[i]] ** 2).mean() if per_row == "mean" else (r[i][mask[i]] ** 2).sum())
-            for i in range(7) if mask[i].any()]
+    rows = [
+        ((r[i][mask[i]] ** 2).mean() if per_row == "mean" else (r[i][mask[i]] ** 2).sum())
+        for i in range(7)
+        if mask[i].any()
+    ]
     assert torch.isclose(term.value(), torch.stack(rows).mean(), rtol=1e-6)
 
 
@@ -124,5 +129,7 @@ def test_objective_equals_the_paper_losses_written_out(fitted_small_map):
     values = obj.as_floats()
     for name, ref in (("colour", colour), ("depth", depth), ("sdf", sdf), ("free_space", free)):
         assert values[name] == pytest.approx(float(ref), rel=1e-5), name
-    total = w.colour * colour + w.depth * depth + w.sdf * sdf + w.free_space * free + w.smoothness * values["smoothness"]
+    total = (
+        w.colour * colour + w.depth * depth + w.sdf * sdf + w.free_space * free + w.smoothness * values["smoothness"]
+    )
     assert values["total"] == pytest.approx(float(total), rel=1e-5)

@@ -40,7 +40,7 @@ def test_skipping_leaves_rendering_and_objective_unchanged_where_the_map_has_the
         loss_part, _ = objective(fm.block_map, rays, skipping, with_smoothness=False, z=z)
     share = float(evaluated_samples(z, px.depth_m, 0.3).float().mean())
     assert 0.3 < share < 0.8, share
-    near = (full.depth_m - px.depth_m).abs() < 0.3 - fm.render.truncation_m   # the map has the surface there
+    near = (full.depth_m - px.depth_m).abs() < 0.3 - fm.render.truncation_m  # the map has the surface there
     assert float(near.float().mean()) > 0.95
     torch.testing.assert_close(part.depth_m[near], full.depth_m[near], atol=1e-5, rtol=0)
     torch.testing.assert_close(part.rgb[near], full.rgb[near], atol=1e-5, rtol=0)

@@ -87,5 +87,7 @@ def test_sample_depths_ranges_and_order():
     # ray 2: the band is clipped at near
     assert z[2].min() >= 0.1
     # deterministic bin centres when not stratified
-    zu = sample_depths(torch.zeros(1), SamplingConfig(n_uniform=4, n_surface=0, near_m=0.0, far_m=4.0), stratified=False)
+    zu = sample_depths(
+        torch.zeros(1), SamplingConfig(n_uniform=4, n_surface=0, near_m=0.0, far_m=4.0), stratified=False
+    )
     assert torch.allclose(zu, torch.tensor([[0.5, 1.5, 2.5, 3.5]]))

@@ -7,8 +7,9 @@ from neb_slam_core.mapping.optimizer import MapOptimizer
 from neb_slam_core.scene.block_map import BlockMap
 from neb_slam_core.types import Intrinsics
 
-SMALL_GRID = HashGridConfig(n_levels=4, n_features_per_level=2, log2_hashmap_size=12, base_resolution=4,
-                            max_resolution=32, init_scale=0.1)
+SMALL_GRID = HashGridConfig(
+    n_levels=4, n_features_per_level=2, log2_hashmap_size=12, base_resolution=4, max_resolution=32, init_scale=0.1
+)
 
 
 def make_map(**kw) -> BlockMap:
@@ -118,8 +119,11 @@ def test_map_optimizer_steps_like_torchs_default_adam():
     twin = copy.deepcopy(m)
     start = m.blocks[0].grid.table.detach().clone()
     opt = MapOptimizer(m, grid_lr=1e-2, decoder_lr=2e-2)
-    ref = torch.optim.Adam([{"params": list(twin.decoders.parameters()), "lr": 2e-2},
-                            {"params": [twin.blocks[0].grid.table], "lr": 1e-2}], betas=(0.9, 0.99), eps=1e-15)
+    ref = torch.optim.Adam(
+        [{"params": list(twin.decoders.parameters()), "lr": 2e-2}, {"params": [twin.blocks[0].grid.table], "lr": 1e-2}],
+        betas=(0.9, 0.99),
+        eps=1e-15,
+    )
     g = torch.Generator().manual_seed(0)
     for step in range(5):
         if step == 2:
@@ -163,7 +167,9 @@ def test_features_blend_continuously_across_a_face_inside_another_block():
     # with blend_m = 0 the paper's plain mean holds up to the face
     plain = BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID, blend_m=0.0), grid_backend="reference", seed=3)
     pa, pb = plain.add_block([0.0, 0.0, 0.0]), plain.add_block([3.0, 0.0, 0.0])
-    assert torch.allclose(plain.grid_features(p)[0], 0.5 * (pa.grid(pa.to_local(p)) + pb.grid(pb.to_local(p))), atol=1e-6)
+    assert torch.allclose(
+        plain.grid_features(p)[0], 0.5 * (pa.grid(pa.to_local(p)) + pb.grid(pb.to_local(p))), atol=1e-6
+    )
 
 
 def _fast_map(blend_m: float, dtype=torch.float32) -> BlockMap:
@@ -187,10 +193,12 @@ def _fast_map(blend_m: float, dtype=torch.float32) -> BlockMap:
 def _points(n: int, dtype=torch.float32) -> torch.Tensor:
     """Points over the three blocks and around them: one block, two, three, none, and exactly on faces."""
     gen = torch.Generator().manual_seed(7)
-    p = (torch.rand(n, 3, generator=gen, dtype=torch.float64) * torch.tensor([10.0, 9.0, 8.0])
-         - torch.tensor([3.5, 3.5, 4.5]))
-    faces = torch.tensor([[2.5, 0.3, 0.1], [0.5, -1.0, 0.2], [3.0, 4.5, -1.0], [-2.5, -2.5, -2.5], [5.5, 0.0, 0.0]],
-                         dtype=torch.float64)
+    p = torch.rand(n, 3, generator=gen, dtype=torch.float64) * torch.tensor([10.0, 9.0, 8.0]) - torch.tensor(
+        [3.5, 3.5, 4.5]
+    )
+    faces = torch.tensor(
+        [[2.5, 0.3, 0.1], [0.5, -1.0, 0.2], [3.0, 4.5, -1.0], [-2.5, -2.5, -2.5], [5.5, 0.0, 0.0]], dtype=torch.float64
+    )
     return torch.cat([p, faces]).to(dtype)
 
 

@@ -42,7 +42,7 @@ def test_fast_forward_matches_the_torch_modules(fast_ext, dtype, tol, n):
     assert (rgb_f - rgb_r).abs().max() <= tol
     assert torch.equal(sdf_only, sdf_f)
     if n >= 1000:  # inputs that exercise it: both signs of the sdf, colours spread over (0, 1)
-        assert 0.05 < float(rgb_r.std()) and 0.2 < float((sdf_r > 0).float().mean()) < 0.8
+        assert float(rgb_r.std()) > 0.05 and 0.2 < float((sdf_r > 0).float().mean()) < 0.8
 
 
 def test_fast_forward_with_other_sizes(fast_ext):
@@ -107,7 +107,7 @@ def test_torch_path_equals_the_mlps_on_the_concatenated_inputs_with_gradients():
     results = []
     for fn in (lambda: dec(blob, feats), by_concatenation):
         sdf, rgb = fn()
-        loss = (sdf * torch.linspace(-1, 1, 300, dtype=torch.float64)).sum() + (rgb ** 2).sum()
+        loss = (sdf * torch.linspace(-1, 1, 300, dtype=torch.float64)).sum() + (rgb**2).sum()
         grads = torch.autograd.grad(loss, [blob, feats, *dec.parameters()])
         results.append((sdf.detach(), rgb.detach(), grads))
     (sdf, rgb, grads), (sdf_ref, rgb_ref, grads_ref) = results
@@ -131,9 +131,10 @@ def test_forward_with_tangents_are_autograds_jacobian_vector_products(fast_ext, 
     expected = []
     for a in range(3):
         d_blob = torch.zeros(n, 48, dtype=dtype)
-        d_blob[:, 16 * a:16 * (a + 1)] = slopes[:, a]
-        (sdf, rgb), (d_sdf, d_rgb) = torch.autograd.functional.jvp(lambda b, f: ref(b, f), (blob, feats),
-                                                                   (d_blob, d_feats[:, a]))
+        d_blob[:, 16 * a : 16 * (a + 1)] = slopes[:, a]
+        (sdf, rgb), (d_sdf, d_rgb) = torch.autograd.functional.jvp(
+            lambda b, f: ref(b, f), (blob, feats), (d_blob, d_feats[:, a])
+        )
         expected.append([t.detach() for t in (sdf, rgb, d_sdf, d_rgb)])
     for decoders in (fast, ref):
         with torch.no_grad():

@@ -74,8 +74,14 @@ def test_init_is_seeded_uniform():
 
 @pytest.mark.parametrize(
     "field, value",
-    [("n_levels", 0), ("n_features_per_level", 0), ("log2_hashmap_size", 40), ("base_resolution", 0),
-     ("max_resolution", 8), ("init_scale", -1.0)],
+    [
+        ("n_levels", 0),
+        ("n_features_per_level", 0),
+        ("log2_hashmap_size", 40),
+        ("base_resolution", 0),
+        ("max_resolution", 8),
+        ("init_scale", -1.0),
+    ],
 )
 def test_bad_config_is_a_config_error(field, value):
     with pytest.raises(ConfigError, match=field):
@@ -144,8 +150,17 @@ def test_hash_indices_match_the_formula(request, backend):
     with torch.no_grad():  # every row holds its own index, so a lookup at a vertex returns the row it read
         grid.table[:, 0] = torch.arange(meta.n_entries, dtype=torch.float64)
         grid.table[:, 1] = -2.0 * torch.arange(meta.n_entries, dtype=torch.float64)
-    vertices = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (5, 17, 30), (31, 31, 31), (32, 32, 32), (32, 0, 7),
-                (12, 25, 3)]
+    vertices = [
+        (0, 0, 0),
+        (1, 0, 0),
+        (0, 1, 0),
+        (0, 0, 1),
+        (5, 17, 30),
+        (31, 31, 31),
+        (32, 32, 32),
+        (32, 0, 7),
+        (12, 25, 3),
+    ]
     x = torch.tensor(vertices, dtype=torch.float64) / 32  # exact in binary: p = x * 32 is the vertex
     out = grid(x).detach()
     for (i, j, k), row in zip(vertices, out):
@@ -248,8 +263,9 @@ def test_bad_points_are_rejected():
 # --------------------------------------------------------------------------------------------- gradients
 
 
-GRADCHECK_CFG = HashGridConfig(n_levels=3, n_features_per_level=2, log2_hashmap_size=6, base_resolution=2,
-                               max_resolution=8)  # R = 2 (dense, 27 rows), 4 and 8 (hashed, 64 rows each)
+GRADCHECK_CFG = HashGridConfig(
+    n_levels=3, n_features_per_level=2, log2_hashmap_size=6, base_resolution=2, max_resolution=8
+)  # R = 2 (dense, 27 rows), 4 and 8 (hashed, 64 rows each)
 
 
 def _interior_points(meta: HashGridMeta, n: int, seed: int) -> torch.Tensor:
@@ -376,8 +392,10 @@ def test_auto_uses_the_reference_where_the_fast_path_does_not_apply(fast_ext):
     out = grid(x.double())
     assert out.dtype == torch.float64
     torch.testing.assert_close(out, grid(x).double(), rtol=0, atol=1e-6)
-    four = HashGrid(HashGridConfig(n_levels=2, n_features_per_level=4, log2_hashmap_size=8, base_resolution=2,
-                                   max_resolution=4), seed=0)
+    four = HashGrid(
+        HashGridConfig(n_levels=2, n_features_per_level=4, log2_hashmap_size=8, base_resolution=2, max_resolution=4),
+        seed=0,
+    )
     assert not four.uses_fast_path(x) and four(x).shape == (10, 8)
     with pytest.raises(ConfigError, match="n_features_per_level"):
         HashGrid(four.cfg, backend="fast")
@@ -402,4 +420,4 @@ def test_resolutions_follow_the_paper_formula():
     assert hg.resolutions_per_level(16, 250, 1) == (16,)
     assert hg.resolutions_per_level(2, 32, 5) == (2, 4, 8, 16, 32)
     b = math.exp((math.log(512) - math.log(16)) / 7)
-    assert hg.resolutions_per_level(16, 512, 8) == tuple(math.floor(16 * b**l + 1e-9) for l in range(8))
+    assert hg.resolutions_per_level(16, 512, 8) == tuple(math.floor(16 * b**level + 1e-9) for level in range(8))

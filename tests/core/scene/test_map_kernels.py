@@ -33,7 +33,8 @@ def test_the_module_built_at_install_is_the_one_loaded(kernels):
     key = _ext.build_key(_ext.compile_flags())
     assert _ext.loaded_from_install(kernels), (
         f"loaded {kernels.__name__} ({getattr(kernels, '__file__', '?')}), the first-use build, not "
-        f"{_ext.INSTALLED}: the install did not build it, or built it from other sources (rebuild: {REINSTALL})")
+        f"{_ext.INSTALLED}: the install did not build it, or built it from other sources (rebuild: {REINSTALL})"
+    )
     assert kernels.__name__ == "neb_slam_core.scene._map_kernels"
     assert Path(kernels.__file__).parent == Path(_ext.__file__).parent  # beside _ext.py, not in a cache
     assert kernels.build_key == key
@@ -45,8 +46,12 @@ def test_the_module_built_at_install_is_the_one_loaded(kernels):
 def _grid_args(n: int = 6) -> tuple[dict, int]:
     """A small grid's arguments (3 levels x 2 features) for n points, and its output width."""
     grid = HashGrid(HashGridConfig(n_levels=3, log2_hashmap_size=6, base_resolution=2, max_resolution=8), seed=0)
-    layout = dict(offsets=grid.level_offsets, resolutions=grid.level_resolutions, dense=grid.level_is_dense,
-                  table_size=grid.meta.table_size)
+    layout = dict(
+        offsets=grid.level_offsets,
+        resolutions=grid.level_resolutions,
+        dense=grid.level_is_dense,
+        table_size=grid.meta.table_size,
+    )
     return dict(x=torch.rand(n, 3), table=grid.table.detach(), **layout), grid.n_output_dims
 
 
@@ -65,16 +70,24 @@ def _calls() -> dict:
     blob, feat = torch.rand(n, 12), torch.rand(n, 8)
     return {
         "hash_grid_forward": dict(x=grid["x"], table=grid["table"], **layout),
-        "hash_grid_backward": dict(grad_out=torch.rand(n, d), x=grid["x"], table=grid["table"], **layout,
-                                   need_x=True, need_table=True),
-        "hash_grid_forward_blocks": dict(xw=grid["x"], centres=torch.rand(2, 3),
-                                         tables=[grid["table"], grid["table"].clone()], **layout, edge=1.0,
-                                         blend=0.1, with_jacobian=True),
+        "hash_grid_backward": dict(
+            grad_out=torch.rand(n, d), x=grid["x"], table=grid["table"], **layout, need_x=True, need_table=True
+        ),
+        "hash_grid_forward_blocks": dict(
+            xw=grid["x"],
+            centres=torch.rand(2, 3),
+            tables=[grid["table"], grid["table"].clone()],
+            **layout,
+            edge=1.0,
+            blend=0.1,
+            with_jacobian=True,
+        ),
         "one_blob_forward": dict(x=grid["x"], n_bins=4, period=2.0),
         "one_blob_backward": dict(grad_out=torch.rand(n, 12), x=grid["x"], n_bins=4, period=2.0),
         "decoder_forward": dict(blob=blob, feat=feat, weights=weights, with_colour=True),
-        "decoder_forward_tangents": dict(blob=blob, feat=feat, blob_slopes=torch.rand(n, 3, 4),
-                                         d_feat=torch.rand(n, 3, 8), weights=weights),
+        "decoder_forward_tangents": dict(
+            blob=blob, feat=feat, blob_slopes=torch.rand(n, 3, 4), d_feat=torch.rand(n, 3, 8), weights=weights
+        ),
     }
 
 
@@ -136,8 +149,13 @@ def test_the_valid_calls_run(kernels):
 @pytest.mark.parametrize("fn, name, key, index", CASES, ids=[f"{c[0]}-{c[1]}" for c in CASES])
 def test_each_tensor_argument_is_checked(kernels, fn, name, key, index):
     kwargs = _calls()[fn]
-    _raises(kernels, fn, _with(kwargs, key, index, lambda t: _wrong_dtype(name, t)), name,
-            r"be (float32 or float64|[A-Z][a-z]+), got")
+    _raises(
+        kernels,
+        fn,
+        _with(kwargs, key, index, lambda t: _wrong_dtype(name, t)),
+        name,
+        r"be (float32 or float64|[A-Z][a-z]+), got",
+    )
     _raises(kernels, fn, _with(kwargs, key, index, _non_contiguous), name, "be contiguous")
     _raises(kernels, fn, _with(kwargs, key, index, lambda t: t.unsqueeze(0)), name, "have shape")
     _raises(kernels, fn, _with(kwargs, key, index, lambda t: t.to("meta")), name, "be a CPU tensor")
@@ -153,8 +171,11 @@ def test_the_errors_say_what_was_expected(kernels):
     with pytest.raises(RuntimeError, match="one_blob_forward: x must be float32 or float64, got Int"):
         kernels.one_blob_forward(torch.zeros(4, 3, dtype=torch.int32), 4, 2.0)
     # W3 takes the 12 codes and the geometry MLP's 5 features: (16, 17)
-    with pytest.raises(RuntimeError, match=r"decoder_forward: weights\[4\] \(W3\) must have shape \(16, 17\), "
-                                           r"got \[16, 18\]"):
+    with pytest.raises(
+        RuntimeError,
+        match=r"decoder_forward: weights\[4\] \(W3\) must have shape \(16, 17\), "
+        r"got \[16, 18\]",
+    ):
         w = list(calls["decoder_forward"]["weights"])
         w[4] = torch.rand(16, 18)
         kernels.decoder_forward(calls["decoder_forward"]["blob"], calls["decoder_forward"]["feat"], w, True)

@@ -11,8 +11,9 @@ from neb_slam_core.scene import map_update
 from neb_slam_core.scene.block_map import BlockMap
 from neb_slam_core.scene.map_update import MapUpdateError
 
-SMALL_GRID = HashGridConfig(n_levels=2, n_features_per_level=2, log2_hashmap_size=4, base_resolution=2,
-                            max_resolution=4, init_scale=0.1)
+SMALL_GRID = HashGridConfig(
+    n_levels=2, n_features_per_level=2, log2_hashmap_size=4, base_resolution=2, max_resolution=4, init_scale=0.1
+)
 
 
 def make_map(seed: int = 3) -> BlockMap:
@@ -36,8 +37,9 @@ def trained(seed: int = 3) -> BlockMap:
 def test_layout_sizes_are_the_documented_ones():
     m = trained()
     poses = np.stack([np.eye(4)] * 2)
-    data = map_update.encode(m, [2, 0], version=5, ack_stamp_ns=123, keyframe_stamps_ns=[10, 20], keyframe_poses=poses,
-                             loop_stamp_ns=77)
+    data = map_update.encode(
+        m, [2, 0], version=5, ack_stamp_ns=123, keyframe_stamps_ns=[10, 20], keyframe_poses=poses, loop_stamp_ns=77
+    )
     table_numel = m.blocks[0].grid.table.numel()
     n_decoder = sum(p.numel() for p in m.decoders.parameters())
     assert len(data) == 52 + 2 * (16 + 4 * table_numel) + 4 * n_decoder + 2 * 8 + 2 * 128
@@ -115,11 +117,20 @@ def test_bad_updates_are_refused_with_what_is_wrong():
     with pytest.raises(MapUpdateError, match="diverged"):
         map_update.apply(map_update.decode(data), other)
     # a receiver with another grid size
-    finer = BlockMap(BlockConfig(edge_m=5.0, grid=HashGridConfig(n_levels=2, log2_hashmap_size=6, base_resolution=2,
-                                                                 max_resolution=4)), grid_backend="reference", seed=3)
+    finer = BlockMap(
+        BlockConfig(
+            edge_m=5.0, grid=HashGridConfig(n_levels=2, log2_hashmap_size=6, base_resolution=2, max_resolution=4)
+        ),
+        grid_backend="reference",
+        seed=3,
+    )
     with pytest.raises(MapUpdateError, match="grid config"):
         map_update.apply(map_update.decode(data), finer)
-    wider = BlockMap(BlockConfig(edge_m=5.0, grid=HashGridConfig(n_levels=3, log2_hashmap_size=4, base_resolution=2,
-                                                                 max_resolution=4)), grid_backend="reference")
+    wider = BlockMap(
+        BlockConfig(
+            edge_m=5.0, grid=HashGridConfig(n_levels=3, log2_hashmap_size=4, base_resolution=2, max_resolution=4)
+        ),
+        grid_backend="reference",
+    )
     with pytest.raises(MapUpdateError, match="decoder config"):
         map_update.apply(map_update.decode(data), wider)

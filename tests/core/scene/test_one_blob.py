@@ -17,7 +17,7 @@ def test_code_at_origin_is_hand_worked(backend):
     assert torch.allclose(code[:, 0], torch.full((3,), expected_edge))
     assert torch.allclose(code[:, 15], torch.full((3,), expected_edge))
     # bin 8 is half a period away: distance 15/32 -> exp(-0.5 * 7.5^2)
-    assert torch.allclose(code[:, 8], torch.full((3,), math.exp(-0.5 * 7.5 ** 2)))
+    assert torch.allclose(code[:, 8], torch.full((3,), math.exp(-0.5 * 7.5**2)))
 
 
 def test_periodic_and_bound_free():
@@ -47,8 +47,7 @@ def _points(n: int, dtype, seed: int = 0) -> torch.Tensor:
     boundaries, the half-circle point opposite a centre, 0 and multiples of the period."""
     g = torch.Generator().manual_seed(seed)
     p = torch.rand(n, 3, generator=g, dtype=dtype) * 60.0 - 30.0
-    special = torch.tensor([0.0, 10.0, -10.0, 20.0, 0.3125, 0.625, 5.3125, -4.6875, 9.999999, -1e-9],
-                           dtype=dtype)
+    special = torch.tensor([0.0, 10.0, -10.0, 20.0, 0.3125, 0.625, 5.3125, -4.6875, 9.999999, -1e-9], dtype=dtype)
     rows = special[torch.arange(30) % len(special)].reshape(10, 3)
     return torch.cat([p, rows])
 
@@ -111,6 +110,6 @@ def test_codes_with_slopes_are_the_reference_and_its_derivative():
     # (3K, N, 3): code a*K + j depends on axis a only
     k = cfg.n_bins
     for a in range(3):
-        torch.testing.assert_close(slopes[:, a], jac[a * k:(a + 1) * k, :, a].T, rtol=0, atol=1e-10)
+        torch.testing.assert_close(slopes[:, a], jac[a * k : (a + 1) * k, :, a].T, rtol=0, atol=1e-10)
         others = [b for b in range(3) if b != a]
-        assert float(jac[a * k:(a + 1) * k][:, :, others].abs().max()) == 0.0
+        assert float(jac[a * k : (a + 1) * k][:, :, others].abs().max()) == 0.0

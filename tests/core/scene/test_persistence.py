@@ -12,8 +12,9 @@ from neb_slam_core.scene.block_map import BlockMap
 from neb_slam_core.scene.persistence import load_map, save_map
 from neb_slam_core.types import Intrinsics, RgbdFrame
 
-GRID = HashGridConfig(n_levels=4, n_features_per_level=2, log2_hashmap_size=12, base_resolution=4,
-                      max_resolution=32, init_scale=0.5)
+GRID = HashGridConfig(
+    n_levels=4, n_features_per_level=2, log2_hashmap_size=12, base_resolution=4, max_resolution=32, init_scale=0.5
+)
 
 RENDER_SNIPPET = """
 import sys, numpy as np, torch
@@ -48,8 +49,9 @@ def test_save_and_load_in_a_fresh_process_renders_the_same(tmp_path):
     assert depth.std() > 0  # a non-trivial image
     path = save_map(m, tmp_path / "map.pt", extra={"note": "hello"}, block_keyframes={1: [4, 9]})
     out = tmp_path / "render.npz"
-    subprocess.run([sys.executable, "-c", RENDER_SNIPPET, str(path), str(out), str(torch.get_num_threads())],
-                   check=True)
+    subprocess.run(
+        [sys.executable, "-c", RENDER_SNIPPET, str(path), str(out), str(torch.get_num_threads())], check=True
+    )
     loaded = np.load(out)
     assert np.array_equal(loaded["depth"], depth)
     assert np.array_equal(loaded["rgb"], rgb)

@@ -14,17 +14,19 @@ from neb_slam_core.cli.main import main as cli_main
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.errors import DatasetError
 from neb_slam_core.io.trajectory import read_tum_trajectory
+from neb_slam_core.synth import generate as gen
 from neb_slam_core.synth.noise import axial_sigma_m
 from neb_slam_core.synth.render import Renderer
-
-from neb_slam_core.synth import generate as gen
 
 FILES = ("rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.json", "mesh.ply", "scene.json")
 
 
 def _digest(folder):
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_folder_has_the_tum_layout(small_folder):
@@ -34,7 +36,7 @@ def test_folder_has_the_tum_layout(small_folder):
     depth = [ln.split() for ln in (small_folder / "depth.txt").read_text().splitlines() if not ln.startswith("#")]
     gt = read_tum_trajectory(small_folder / "groundtruth.txt")
     assert len(rgb) == len(depth) == len(gt) == 5
-    assert [r[0] for r in rgb] == [d[0] for d in depth]                           # identical stamps
+    assert [r[0] for r in rgb] == [d[0] for d in depth]  # identical stamps
     assert [r[1] for r in rgb] == [f"rgb/{r[0]}.png" for r in rgb]
     raw = cv2.imread(str(small_folder / depth[0][1]), cv2.IMREAD_UNCHANGED)
     assert raw.dtype == np.uint16 and raw.shape == (48, 64)
@@ -87,8 +89,8 @@ def test_skips_a_complete_folder_and_regenerates_on_change(tmp_path):
     gen.generate("small", out, n_frames=3, size=(32, 24), progress=False)
     stamp = (out / "scene.json").stat().st_mtime_ns
     gen.generate("small", out, n_frames=3, size=(32, 24), progress=False)
-    assert (out / "scene.json").stat().st_mtime_ns == stamp                    # untouched
-    gen.generate("small", out, n_frames=4, size=(32, 24), progress=False)        # other options: rewritten
+    assert (out / "scene.json").stat().st_mtime_ns == stamp  # untouched
+    gen.generate("small", out, n_frames=4, size=(32, 24), progress=False)  # other options: rewritten
     assert len(open_dataset(out)) == 4 and len(list((out / "rgb").glob("*.png"))) == 4
     (out / "rgb" / sorted(p.name for p in (out / "rgb").iterdir())[0]).unlink()  # incomplete: rewritten
     assert not gen.is_complete(out, gen.resolve_spec("small", n_frames=4, size=(32, 24)))
@@ -113,12 +115,12 @@ def test_noise_option_perturbs_depth_by_the_model(small_folder, tmp_path):
     residuals = []
     for i in range(5):
         c, n = clean_ds[i], noisy_ds[i]
-        assert np.array_equal(c.rgb, n.rgb)                                    # colour untouched
+        assert np.array_equal(c.rgb, n.rgb)  # colour untouched
         both = (c.depth_m > 0) & (n.depth_m > 0)
-        assert both.mean() > 0.8                                               # dropout is the exception
+        assert both.mean() > 0.8  # dropout is the exception
         z = c.depth_m[both].astype(np.float64)
         # expected spread: axial sigma and the disparity quantisation step (uniform: step^2 / 12)
-        scale = np.sqrt(axial_sigma_m(z, spec.noise) ** 2 + (spec.noise.disparity_step_per_m * z ** 2) ** 2 / 12)
+        scale = np.sqrt(axial_sigma_m(z, spec.noise) ** 2 + (spec.noise.disparity_step_per_m * z**2) ** 2 / 12)
         residuals.append((n.depth_m[both] - c.depth_m[both]) / scale)
     r = np.concatenate(residuals)
     assert abs(r.mean()) < 0.1 and r.std() == pytest.approx(1.0, abs=0.15)
@@ -126,8 +128,12 @@ def test_noise_option_perturbs_depth_by_the_model(small_folder, tmp_path):
 
 def test_cli_synth(tmp_path, capsys):
     out = tmp_path / "cli"
-    assert cli_main(["synth", str(out), "--preset", "small", "--frames", "3", "--size", "32x24", "--seed", "2",
-                     "--no-progress"]) == 0
+    assert (
+        cli_main(
+            ["synth", str(out), "--preset", "small", "--frames", "3", "--size", "32x24", "--seed", "2", "--no-progress"]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "scene 'small' seed 2" in text and "frames/s" in text
     assert len(open_dataset(out)) == 3

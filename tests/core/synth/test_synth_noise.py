@@ -10,16 +10,22 @@ import pytest
 from neb_slam_core.errors import ConfigError
 from neb_slam_core.synth.noise import DepthNoiseSpec, apply_depth_noise, axial_sigma_m, depth_edges, quantize_depth
 
-AXIAL_ONLY = DepthNoiseSpec(enabled=True, disparity_step_per_m=0.0, edge_dropout_prob=0.0,
-                            grazing_start_deg=89.0, grazing_full_deg=90.0, random_dropout_prob=0.0)
+AXIAL_ONLY = DepthNoiseSpec(
+    enabled=True,
+    disparity_step_per_m=0.0,
+    edge_dropout_prob=0.0,
+    grazing_start_deg=89.0,
+    grazing_full_deg=90.0,
+    random_dropout_prob=0.0,
+)
 
 
 def test_axial_sigma_formula_by_hand():
     spec = DepthNoiseSpec()
     # sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2
     assert axial_sigma_m(0.4, spec) == pytest.approx(0.0012)
-    assert axial_sigma_m(2.0, spec) == pytest.approx(0.0012 + 0.0019 * 1.6 ** 2)      # 6.064 mm
-    assert axial_sigma_m(4.0, spec) == pytest.approx(0.0012 + 0.0019 * 3.6 ** 2)      # 25.82 mm
+    assert axial_sigma_m(2.0, spec) == pytest.approx(0.0012 + 0.0019 * 1.6**2)  # 6.064 mm
+    assert axial_sigma_m(4.0, spec) == pytest.approx(0.0012 + 0.0019 * 3.6**2)  # 25.82 mm
 
 
 @pytest.mark.parametrize("z", [1.0, 2.0, 4.0])
@@ -53,14 +59,14 @@ def test_disparity_quantisation_steps_grow_with_z_squared():
     levels = np.unique(q)
     near = np.diff(levels[(levels > 0.99) & (levels < 1.01)])
     far = np.diff(levels[(levels > 4.9) & (levels < 5.1)])
-    assert near.mean() == pytest.approx(step * 1.0 ** 2, rel=0.02)            # ~2.85 mm at 1 m
-    assert far.mean() == pytest.approx(step * 5.0 ** 2, rel=0.05)             # ~7 cm at 5 m
+    assert near.mean() == pytest.approx(step * 1.0**2, rel=0.02)  # ~2.85 mm at 1 m
+    assert far.mean() == pytest.approx(step * 5.0**2, rel=0.05)  # ~7 cm at 5 m
     assert quantize_depth(np.array([0.0]), step)[0] == 0.0
 
 
 def test_edge_dropout_hits_exactly_the_discontinuity():
     depth = np.full((6, 8), 1.0, dtype=np.float32)
-    depth[:, 4:] = 3.0                                                        # a jump between columns 3 and 4
+    depth[:, 4:] = 3.0  # a jump between columns 3 and 4
     edges = depth_edges(depth, 0.05)
     assert edges[:, 3].all() and edges[:, 4].all() and edges.sum() == 12
     spec = replace(AXIAL_ONLY, axial_a_m=0.0, axial_b_per_m=0.0, edge_dropout_prob=1.0)
@@ -74,7 +80,7 @@ def test_grazing_dropout_probability_is_linear_in_the_angle():
     for angle, p_lost in ((60.0, 0.0), (80.0, 2.0 / 3.0), (86.0, 1.0)):
         cos = np.full_like(depth, np.cos(np.radians(angle)))
         lost = (apply_depth_noise(depth, cos, spec, np.random.default_rng(1)) == 0).mean()
-        assert lost == pytest.approx(p_lost, abs=0.01)       # 90,000 pixels: binomial std < 0.002
+        assert lost == pytest.approx(p_lost, abs=0.01)  # 90,000 pixels: binomial std < 0.002
 
 
 def test_random_dropout_rate():
@@ -86,7 +92,11 @@ def test_random_dropout_rate():
 
 def test_bad_parameters_are_rejected():
     with pytest.raises(ConfigError, match="edge_dropout_prob"):
-        apply_depth_noise(np.ones((2, 2), np.float32), np.ones((2, 2)), replace(AXIAL_ONLY, edge_dropout_prob=1.5),
-                          np.random.default_rng(0))
+        apply_depth_noise(
+            np.ones((2, 2), np.float32),
+            np.ones((2, 2)),
+            replace(AXIAL_ONLY, edge_dropout_prob=1.5),
+            np.random.default_rng(0),
+        )
     with pytest.raises(ConfigError, match="grazing"):
         replace(DepthNoiseSpec(), grazing_start_deg=80.0, grazing_full_deg=70.0).validate()

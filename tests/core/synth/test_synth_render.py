@@ -10,13 +10,12 @@ import numpy as np
 import pytest
 import trimesh
 
+from neb_slam_core.synth import generate as gen
 from neb_slam_core.synth import render as render_mod
 from neb_slam_core.synth.presets import get_preset
 from neb_slam_core.synth.render import CameraSpec, Renderer
 from neb_slam_core.synth.textures import Material
 from neb_slam_core.types import Intrinsics
-
-from neb_slam_core.synth import generate as gen
 
 GREY = Material("paint", ((0.5, 0.5, 0.5), (0, 0, 0), (0, 0, 0)))
 
@@ -49,10 +48,10 @@ def test_depth_of_a_tilted_plane_follows_the_pixel_centre_convention():
 def test_depth_range_and_misses_read_zero():
     intr = Intrinsics(10.0, 10.0, 3.5, 2.5, 8, 6)
     far = _plane_renderer([[-50, -50, 12], [50, -50, 12], [50, 50, 12], [-50, 50, 12]], intr)
-    assert (far.render(np.eye(4)).depth_m == 0).all()                          # 12 m > max_depth_m 10
+    assert (far.render(np.eye(4)).depth_m == 0).all()  # 12 m > max_depth_m 10
     near = _plane_renderer([[-5, -5, 0.05], [5, -5, 0.05], [5, 5, 0.05], [-5, 5, 0.05]], intr)
-    assert (near.render(np.eye(4)).depth_m == 0).all()                         # 5 cm < min_depth_m 0.1
-    behind = np.diag([1.0, -1.0, -1.0, 1.0])                                    # looking along -z: no surface
+    assert (near.render(np.eye(4)).depth_m == 0).all()  # 5 cm < min_depth_m 0.1
+    behind = np.diag([1.0, -1.0, -1.0, 1.0])  # looking along -z: no surface
     view = near.render(behind)
     assert (view.depth_m == 0).all() and (view.face_index == -1).all() and (view.rgb == 0).all()
 
@@ -62,7 +61,7 @@ def test_lambertian_shading_of_a_grey_plane():
     # plane z = 2 seen from the origin: its normal faces the camera, (0, 0, -1); light (0, 0, -1) -> full
     r = _plane_renderer([[-9, -9, 2], [9, -9, 2], [9, 9, 2], [-9, 9, 2]], intr, light_dir=(0, 0, -1), ambient=0.4)
     rgb = r.render(np.eye(4)).rgb
-    mottle = 0.94 + 0.12 * np.array([0.0, 1.0])                 # paint's brightness variation range
+    mottle = 0.94 + 0.12 * np.array([0.0, 1.0])  # paint's brightness variation range
     assert rgb.min() >= np.floor(0.5 * mottle[0] * 255) and rgb.max() <= np.ceil(0.5 * mottle[1] * 255)
     # light from the side (perpendicular to the normal): ambient only
     r2 = _plane_renderer([[-9, -9, 2], [9, -9, 2], [9, 9, 2], [-9, 9, 2]], intr, light_dir=(1, 0, 0), ambient=0.4)
@@ -80,7 +79,7 @@ def test_fallback_intersector_warns_once_and_agrees(monkeypatch, caplog):
     seq = gen.build_sequence(gen.resolve_spec("small", n_frames=4))
     intr = CameraSpec(width=24, height=18).intrinsics()
     ref = Renderer.for_scene(scene, intr, supersample=1).render(seq.trajectory.poses[1])
-    monkeypatch.setitem(sys.modules, "trimesh.ray.ray_pyembree", None)        # import now raises ImportError
+    monkeypatch.setitem(sys.modules, "trimesh.ray.ray_pyembree", None)  # import now raises ImportError
     monkeypatch.setattr(render_mod, "_warned_fallback", False)
     with caplog.at_level(logging.WARNING, logger="neb_slam_core.synth.render"):
         slow = Renderer.for_scene(scene, intr, supersample=1)

@@ -14,8 +14,10 @@ from neb_slam_core.synth.scene import build_scene
 
 
 def _point_in_spaces(plan, xy, margin=1e-9):
-    return any(s.rect.x0 - margin <= xy[0] <= s.rect.x1 + margin and s.rect.y0 - margin <= xy[1] <= s.rect.y1 + margin
-               for s in plan.spaces)
+    return any(
+        s.rect.x0 - margin <= xy[0] <= s.rect.x1 + margin and s.rect.y0 - margin <= xy[1] <= s.rect.y1 + margin
+        for s in plan.spaces
+    )
 
 
 def test_rect_distance_is_euclidean_outside_and_zero_inside():
@@ -66,7 +68,11 @@ def test_corridor_and_small_presets_have_their_shapes():
     size = small.bounds[1] - small.bounds[0]
     assert np.allclose(size, [4.0, 4.0, 2.6], atol=0.11)
     # furnished: boxes rise from the floor (faces facing up between the floor and the ceiling)
-    up = (small.mesh.face_normals[:, 2] > 0.99) & (small.mesh.triangles_center[:, 2] > 0.2) & (small.mesh.triangles_center[:, 2] < 2.5)
+    up = (
+        (small.mesh.face_normals[:, 2] > 0.99)
+        & (small.mesh.triangles_center[:, 2] > 0.2)
+        & (small.mesh.triangles_center[:, 2] < 2.5)
+    )
     assert up.sum() >= 2 * 3
 
 
@@ -89,7 +95,14 @@ def test_mesh_faces_carry_materials_and_face_into_free_space():
     # a point 1 cm along the normal from any face centre is inside the room (furniture stands 2 cm
     # off the walls, so even the backs of cabinets face into the room's air)
     c = mesh.triangles_center + 0.01 * mesh.face_normals
-    inside = (c[:, 0] > room.x0) & (c[:, 0] < room.x1) & (c[:, 1] > room.y0) & (c[:, 1] < room.y1) & (c[:, 2] > 0) & (c[:, 2] < H)
+    inside = (
+        (c[:, 0] > room.x0)
+        & (c[:, 0] < room.x1)
+        & (c[:, 1] > room.y0)
+        & (c[:, 1] < room.y1)
+        & (c[:, 2] > 0)
+        & (c[:, 2] < H)
+    )
     assert inside.all()
 
 

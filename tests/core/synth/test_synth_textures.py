@@ -5,8 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from neb_slam_core.synth.textures import (KINDS, Material, PosterShape, albedo, hash_cells, random_material,
-                                          random_poster, surface_uv, value_noise)
+from neb_slam_core.synth.textures import (
+    KINDS,
+    Material,
+    PosterShape,
+    albedo,
+    hash_cells,
+    random_material,
+    random_poster,
+    surface_uv,
+    value_noise,
+)
 
 
 def test_hash_is_deterministic_uniform_and_seeded():
@@ -18,7 +27,7 @@ def test_hash_is_deterministic_uniform_and_seeded():
     assert abs(h.mean() - 0.5) < 0.005
     assert abs(h.var() - 1 / 12) < 0.002
     assert not np.array_equal(h, hash_cells(i, j, 8))
-    assert not np.array_equal(h, hash_cells(j, i, 7))          # not symmetric in (i, j)
+    assert not np.array_equal(h, hash_cells(j, i, 7))  # not symmetric in (i, j)
 
 
 def test_value_noise_interpolates_the_lattice_hashes():
@@ -36,7 +45,7 @@ def test_surface_uv_uses_the_two_in_plane_coordinates():
     p = np.array([[1.0, 2.0, 3.0]] * 3)
     n = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     uv = surface_uv(p, n)
-    assert uv.tolist() == [[1.0, 2.0], [2.0, 3.0], [1.0, 3.0]]   # floor (x, y); x-wall (y, z); y-wall (x, z)
+    assert uv.tolist() == [[1.0, 2.0], [2.0, 3.0], [1.0, 3.0]]  # floor (x, y); x-wall (y, z); y-wall (x, z)
 
 
 @pytest.mark.parametrize("kind", [k for k in KINDS if k != "poster"])
@@ -46,10 +55,10 @@ def test_every_material_is_a_deterministic_function_in_range(kind):
     uv = np.random.default_rng(1).uniform(-5, 5, size=(5000, 2))
     c = albedo(m, uv)
     assert c.shape == (5000, 3) and c.min() >= 0.0 and c.max() <= 1.0
-    assert np.array_equal(c, albedo(m, uv))                         # same place, same colour
-    assert np.array_equal(c[100:200], albedo(m, uv[100:200]))      # independent of what else is evaluated
+    assert np.array_equal(c, albedo(m, uv))  # same place, same colour
+    assert np.array_equal(c[100:200], albedo(m, uv[100:200]))  # independent of what else is evaluated
     if kind != "paint":
-        assert c.std(axis=0).max() > 0.04                          # patterned, not flat
+        assert c.std(axis=0).max() > 0.04  # patterned, not flat
 
 
 def test_checkerboard_alternates_by_cell():
@@ -62,12 +71,18 @@ def test_checkerboard_alternates_by_cell():
 
 def test_poster_draws_its_shapes_and_frame():
     red, bg, frame = (1.0, 0.0, 0.0), (0.9, 0.9, 0.9), (0.1, 0.1, 0.1)
-    m = Material("poster", (bg, frame, (0.0, 0.0, 0.0)), 1.0, 0,
-                 (PosterShape("ellipse", 1.0, 1.0, 0.2, 0.2, red),), (0.5, 0.5, 1.5, 1.5))
+    m = Material(
+        "poster",
+        (bg, frame, (0.0, 0.0, 0.0)),
+        1.0,
+        0,
+        (PosterShape("ellipse", 1.0, 1.0, 0.2, 0.2, red),),
+        (0.5, 0.5, 1.5, 1.5),
+    )
     c = albedo(m, np.array([[1.0, 1.0], [1.15, 1.0], [1.3, 1.3], [0.51, 1.0]]))
-    assert np.allclose(c[0], red) and np.allclose(c[1], red)      # inside the circle (r = 0.2)
-    assert np.allclose(c[2], bg)                                   # outside it
-    assert np.allclose(c[3], frame)                                # within 3 cm of the edge
+    assert np.allclose(c[0], red) and np.allclose(c[1], red)  # inside the circle (r = 0.2)
+    assert np.allclose(c[2], bg)  # outside it
+    assert np.allclose(c[3], frame)  # within 3 cm of the edge
 
 
 def test_random_poster_is_reproducible():

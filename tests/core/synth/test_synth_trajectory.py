@@ -7,9 +7,8 @@ import pytest
 
 from neb_slam_core.errors import ConfigError
 from neb_slam_core.geometry.se3 import invert, is_rigid
-from neb_slam_core.synth.trajectory import RouteCurve, TrajectorySpec, camera_rotation, make_trajectory
-
 from neb_slam_core.synth import generate as gen
+from neb_slam_core.synth.trajectory import RouteCurve, TrajectorySpec, camera_rotation, make_trajectory
 
 
 def test_camera_rotation_axes_by_hand():
@@ -25,22 +24,29 @@ def test_camera_rotation_axes_by_hand():
 def test_route_curve_interpolates_a_circle_at_constant_speed():
     ang = np.arange(12) * (2 * np.pi / 12)
     curve = RouteCurve(np.stack([np.cos(ang), np.sin(ang)], 1), closed=True)
-    assert curve.length == pytest.approx(2 * np.pi, rel=2e-3)        # a periodic spline through 12 points of a unit circle
+    assert curve.length == pytest.approx(2 * np.pi, rel=2e-3)  # a periodic spline through 12 points of a unit circle
     xy, tangent, s = curve.sample(101)
     assert np.allclose(np.linalg.norm(xy, axis=1), 1.0, atol=2e-3)
     assert np.allclose(xy[0], xy[-1]) and np.allclose(xy[0], [1.0, 0.0])
     step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
     assert step.std() / step.mean() < 2e-3
-    assert np.allclose(np.einsum("ij,ij->i", tangent, xy), 0.0, atol=5e-3)   # tangent perpendicular to radius
+    assert np.allclose(np.einsum("ij,ij->i", tangent, xy), 0.0, atol=5e-3)  # tangent perpendicular to radius
 
 
 def test_trajectory_stamps_and_fixed_heading():
     curve = RouteCurve(np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 1.0]]), closed=True)
-    spec = TrajectorySpec(n_frames=31, fps=30.0, yaw_amplitude_deg=0.0, pitch_deg=0.0, pitch_amplitude_deg=0.0,
-                          height_amplitude_m=0.0, height_m=1.5)
+    spec = TrajectorySpec(
+        n_frames=31,
+        fps=30.0,
+        yaw_amplitude_deg=0.0,
+        pitch_deg=0.0,
+        pitch_amplitude_deg=0.0,
+        height_amplitude_m=0.0,
+        height_m=1.5,
+    )
     traj = make_trajectory(curve, spec, fixed_yaw_deg=90.0)
     assert traj.stamps_ns[0] == 1_000_000_000 and np.all(np.diff(traj.stamps_ns) == 33_333_333)
-    assert np.allclose(traj.poses[:, :3, 2], [0.0, 1.0, 0.0])          # optical axis along +y throughout
+    assert np.allclose(traj.poses[:, :3, 2], [0.0, 1.0, 0.0])  # optical axis along +y throughout
     assert np.allclose(traj.positions[:, 2], 1.5)
     with pytest.raises(ConfigError, match="n_frames"):
         make_trajectory(curve, TrajectorySpec(n_frames=1))
@@ -64,7 +70,7 @@ def test_default_trajectory_loops_smoothly_with_clearance(default_sequence):
     assert step.max() < 0.08 and step.std() / step.mean() < 0.01
     assert rot.max() < 3.5
     accel = np.linalg.norm(np.diff(traj.positions, 2, axis=0), axis=1)
-    assert accel.max() < 0.01                                          # < 1 cm change of per-frame displacement
+    assert accel.max() < 0.01  # < 1 cm change of per-frame displacement
     # camera height and looking mostly level
     assert np.all((traj.positions[:, 2] > 1.2) & (traj.positions[:, 2] < 1.6))
     assert np.abs(traj.poses[:, 2, 2]).max() < np.sin(np.radians(15))  # optical axis within 15 deg of level

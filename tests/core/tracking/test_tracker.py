@@ -72,8 +72,9 @@ def test_gauss_newton_recovers_a_perturbed_pose(fitted_small_map, start):
     for frame in fm.held_out[:3]:
         direction = rng.normal(size=3)
         axis = rng.normal(size=3)
-        T0 = perturbed(frame.T_world_cam, start[0] * direction / np.linalg.norm(direction),
-                       start[1] * axis / np.linalg.norm(axis))
+        T0 = perturbed(
+            frame.T_world_cam, start[0] * direction / np.linalg.norm(direction), start[1] * axis / np.linalg.norm(axis)
+        )
         result = Tracker(cfg, fm.render, seed=0).track(fm.block_map, frame, T0)
         trans, rot = pose_error(result.T_world_cam, frame.T_world_cam)
         assert trans < 0.003 and rot < 0.15, (trans, rot)
@@ -97,7 +98,8 @@ def test_tracking_with_no_mapped_block_in_view_reports_no_valid_rays(fitted_smal
     far_away[:3, 3] += np.array([100.0, 0.0, 0.0])
     for method in ("adam", "gauss_newton"):
         result = Tracker(replace(TrackingConfig(), method=method, iterations=2), fm.render).track(
-            fm.block_map, frame, far_away)
+            fm.block_map, frame, far_away
+        )
         assert result.n_valid_rays == 0
         np.testing.assert_array_equal(result.T_world_cam, far_away)
 
@@ -107,8 +109,11 @@ def test_spatial_gradients_match_autograd(fitted_small_map):
     samples along real rays: in closed form (the C++ path) equal up to float32 rounding; by forward
     differences (the other backends) equal up to the points whose step crosses a grid cell face of some
     level (about one in ten on this map: 16 levels, three axes)."""
-    from neb_slam_core.tracking.gauss_newton import (forward_difference_gradients, spatial_gradients,
-                                                     spatial_gradients_autograd)
+    from neb_slam_core.tracking.gauss_newton import (
+        forward_difference_gradients,
+        spatial_gradients,
+        spatial_gradients_autograd,
+    )
 
     fm = fitted_small_map
     frame = fm.held_out[0]

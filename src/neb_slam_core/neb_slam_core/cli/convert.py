@@ -26,8 +26,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("source", type=Path, help="dataset folder or bag to read")
     p.add_argument("bag", type=Path, help="output bag directory (must not exist unless --overwrite)")
     p.add_argument("--storage", choices=STORAGES, default="mcap", help="rosbag2 storage plugin (default: mcap)")
-    p.add_argument("--depth", choices=DEPTH_ENCODINGS, default="16UC1",
-                   help="depth encoding: 16UC1 millimetres (default) or 32FC1 metres (exact)")
+    p.add_argument(
+        "--depth",
+        choices=DEPTH_ENCODINGS,
+        default="16UC1",
+        help="depth encoding: 16UC1 millimetres (default) or 32FC1 metres (exact)",
+    )
     p.add_argument("--frames", type=int, default=None, metavar="N", help="convert only the first N frames")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag at the output path")
 
@@ -54,8 +58,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {t.topic:<{width}}  {t.msgtype:<30}  {t.message_count} messages")
     print(f"size: {_size_text(summary.size_bytes)}")
     if args.depth == "16UC1":
-        print(f"depth rounded to 1 mm: largest change {summary.depth_max_error_m * 1000:.3f} mm"
-              + (" (use --depth 32FC1 to keep depth exact)" if summary.depth_max_error_m > 0 else ""))
+        print(
+            f"depth rounded to 1 mm: largest change {summary.depth_max_error_m * 1000:.3f} mm"
+            + (" (use --depth 32FC1 to keep depth exact)" if summary.depth_max_error_m > 0 else "")
+        )
     if summary.n_depth_out_of_range:
         print(f"{summary.n_depth_out_of_range} depth pixels beyond 65.535 m written as 0 (invalid)")
     return 0

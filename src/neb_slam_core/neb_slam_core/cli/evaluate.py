@@ -38,18 +38,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", nargs="?", type=Path, help="run directory (trajectory.txt, groundtruth.txt, [mesh.ply])")
     p.add_argument("--est", type=Path, help="estimated trajectory (default: RUN_DIR/trajectory.txt)")
     p.add_argument("--gt", type=Path, help="ground-truth trajectory (default: RUN_DIR/groundtruth.txt)")
-    p.add_argument("--out", type=Path, help="where metrics.json and the plots go (default: RUN_DIR; "
-                                             "without RUN_DIR and --out nothing is written)")
-    p.add_argument("--max-dt", type=float, default=0.02, metavar="S", help="association window in seconds (default 0.02)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="where metrics.json and the plots go (default: RUN_DIR; without RUN_DIR and --out nothing is written)",
+    )
+    p.add_argument(
+        "--max-dt", type=float, default=0.02, metavar="S", help="association window in seconds (default 0.02)"
+    )
     p.add_argument("--no-align", action="store_true", help="ATE without the rigid alignment")
-    p.add_argument("--rpe-delta", type=float, default=1.0, metavar="S", help="RPE pair spacing in seconds (default 1.0)")
+    p.add_argument(
+        "--rpe-delta", type=float, default=1.0, metavar="S", help="RPE pair spacing in seconds (default 1.0)"
+    )
     p.add_argument("--no-plots", action="store_true", help="do not write PNG figures")
     g = p.add_argument_group("reconstruction")
     g.add_argument("--gt-mesh", type=Path, help="ground-truth mesh; switches the reconstruction metrics on")
     g.add_argument("--mesh", type=Path, help="reconstructed mesh (default: RUN_DIR/mesh.ply)")
-    g.add_argument("--intrinsics", type=Path, help="camera intrinsics JSON for culling (default: RUN_DIR/intrinsics.json)")
+    g.add_argument(
+        "--intrinsics", type=Path, help="camera intrinsics JSON for culling (default: RUN_DIR/intrinsics.json)"
+    )
     g.add_argument("--no-cull", action="store_true", help="compare the whole meshes, no culling to the cameras' view")
-    g.add_argument("--cull-stride", type=int, default=5, metavar="K", help="cull with every K-th ground-truth pose (default 5)")
+    g.add_argument(
+        "--cull-stride", type=int, default=5, metavar="K", help="cull with every K-th ground-truth pose (default 5)"
+    )
     g.add_argument("--align-mesh", action="store_true", help="map the reconstruction by the ATE alignment first")
     g.add_argument("--n-points", type=int, default=200_000, help="points sampled per mesh (default 200000)")
     g.add_argument("--threshold-cm", type=float, default=5.0, help="completion-ratio threshold (default 5 cm)")
@@ -83,14 +94,27 @@ def run(args: argparse.Namespace) -> int:
     est_path, gt_path, out_dir = _resolve_paths(args)
     est = read_tum_trajectory(est_path)
     gt = read_tum_trajectory(gt_path)
-    metrics, ate = trajectory_metrics(est, gt, max_dt_s=args.max_dt, align=not args.no_align,
-                                      rpe_delta_s=args.rpe_delta, est_source=est_path, gt_source=gt_path)
+    metrics, ate = trajectory_metrics(
+        est,
+        gt,
+        max_dt_s=args.max_dt,
+        align=not args.no_align,
+        rpe_delta_s=args.rpe_delta,
+        est_source=est_path,
+        gt_source=gt_path,
+    )
     rows = [
         ("matched poses", f"{ate.n_matched} of {ate.n_est} (ground truth {ate.n_gt})"),
         ("ATE RMSE", _fmt(ate.rmse_cm, "cm")),
         ("ATE mean / median / max", f"{ate.mean_cm:.3f} / {ate.median_cm:.3f} / {ate.max_cm:.3f} cm"),
-        (f"RPE trans / rot ({args.rpe_delta:g} s)", f"{_fmt(metrics['rpe_trans_cm'], 'cm')} / {_fmt(metrics['rpe_rot_deg'], 'deg')}"),
-        ("RPE trans / rot (frame)", f"{_fmt(metrics['rpe_frame_trans_cm'], 'cm')} / {_fmt(metrics['rpe_frame_rot_deg'], 'deg')}"),
+        (
+            f"RPE trans / rot ({args.rpe_delta:g} s)",
+            f"{_fmt(metrics['rpe_trans_cm'], 'cm')} / {_fmt(metrics['rpe_rot_deg'], 'deg')}",
+        ),
+        (
+            "RPE trans / rot (frame)",
+            f"{_fmt(metrics['rpe_frame_trans_cm'], 'cm')} / {_fmt(metrics['rpe_frame_rot_deg'], 'deg')}",
+        ),
     ]
 
     if args.gt_mesh is not None:
@@ -136,14 +160,25 @@ def _evaluate_recon(args: argparse.Namespace, rec_path: Path, ate):
     poses = intrinsics = None
     if not args.no_cull:
         if args.intrinsics is not None and not args.intrinsics.is_file():
-            raise DatasetError(args.intrinsics, "intrinsics file not found (expected JSON with fx, fy, cx, cy, width, height)")
+            raise DatasetError(
+                args.intrinsics, "intrinsics file not found (expected JSON with fx, fy, cx, cy, width, height)"
+            )
         intr_path = args.intrinsics or (args.run_dir / INTRINSICS_FILE if args.run_dir is not None else None)
         if intr_path is not None and intr_path.is_file():
             intrinsics = read_intrinsics_json(intr_path)
             poses = ate.gt_poses[:: args.cull_stride]
         else:
             logging.getLogger(__name__).warning(
-                "no intrinsics (%s): reconstruction metrics are computed without culling", intr_path or "--intrinsics")
-    return evaluate_mesh_files(rec_path, args.gt_mesh, T_gt_rec=ate.T_gt_est if args.align_mesh else None,
-                               cull_poses=poses, intrinsics=intrinsics, n_points=args.n_points,
-                               threshold_cm=args.threshold_cm, depth_views=args.depth_views, seed=args.seed)
+                "no intrinsics (%s): reconstruction metrics are computed without culling", intr_path or "--intrinsics"
+            )
+    return evaluate_mesh_files(
+        rec_path,
+        args.gt_mesh,
+        T_gt_rec=ate.T_gt_est if args.align_mesh else None,
+        cull_poses=poses,
+        intrinsics=intrinsics,
+        n_points=args.n_points,
+        threshold_cm=args.threshold_cm,
+        depth_views=args.depth_views,
+        seed=args.seed,
+    )

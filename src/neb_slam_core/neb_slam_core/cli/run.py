@@ -67,8 +67,15 @@ SYNTH_MESH_FILE = "mesh.ply"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("source", type=Path, help="dataset folder or bag")
     p.add_argument("--config", metavar="NAME|PATH", help="config preset or YAML file (default: from the dataset)")
-    p.add_argument("--set", dest="overrides", action="extend", nargs="+", default=[], metavar="KEY=VALUE",
-                   help="override config values, e.g. --set tracking.iterations=20 mapping.every=4")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="extend",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override config values, e.g. --set tracking.iterations=20 mapping.every=4",
+    )
     p.add_argument("--out", type=Path, metavar="DIR", help="run directory (default: runs/<dataset>-<date>-<time>)")
     p.add_argument("--frames", type=int, metavar="N", help="process at most N frames (after --start, with --stride)")
     p.add_argument("--stride", type=int, default=1, metavar="K", help="use every K-th frame (default 1)")
@@ -76,22 +83,53 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, metavar="S", help="random seed (default: the config's)")
     p.add_argument("--device", choices=("cpu", "cuda"), help="torch device (default: the config's)")
     p.add_argument("--format", metavar="FMT", help="dataset loader (default: detect from the layout)")
-    p.add_argument("--map", type=Path, metavar="MAP_PT", help="continue this map checkpoint (a run's map.pt) "
-                                                              "instead of starting from an empty map")
-    p.add_argument("--live", action="store_true", help="simulate a real-time camera: frames arrive at their "
-                                                       "stamps and the engine tracks the newest one when free")
-    p.add_argument("--rate", type=float, default=1.0, metavar="R",
-                   help="with --live: clock speed against the stamps (default 1.0, as recorded)")
+    p.add_argument(
+        "--map",
+        type=Path,
+        metavar="MAP_PT",
+        help="continue this map checkpoint (a run's map.pt) instead of starting from an empty map",
+    )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="simulate a real-time camera: frames arrive at their "
+        "stamps and the engine tracks the newest one when free",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=1.0,
+        metavar="R",
+        help="with --live: clock speed against the stamps (default 1.0, as recorded)",
+    )
     g = p.add_argument_group("mesh and reconstruction")
     g.add_argument("--no-mesh", action="store_true", help="do not extract the mesh")
-    g.add_argument("--mesh-voxel", type=float, metavar="M", help="marching-cubes voxel size in metres "
-                                                                  "(default: the config's mesh.voxel_size_m)")
-    g.add_argument("--gt-mesh", type=Path, metavar="PATH", help="ground-truth mesh for accuracy / completion "
-                                                                "(default: the synth folder's mesh.ply)")
-    g.add_argument("--recon-points", type=int, default=200_000, metavar="N",
-                   help="points sampled per mesh for the reconstruction metrics (default 200000)")
-    g.add_argument("--depth-views", type=int, default=1000, metavar="N",
-                   help="virtual views for Depth L1, 0 to skip (default 1000)")
+    g.add_argument(
+        "--mesh-voxel",
+        type=float,
+        metavar="M",
+        help="marching-cubes voxel size in metres (default: the config's mesh.voxel_size_m)",
+    )
+    g.add_argument(
+        "--gt-mesh",
+        type=Path,
+        metavar="PATH",
+        help="ground-truth mesh for accuracy / completion (default: the synth folder's mesh.ply)",
+    )
+    g.add_argument(
+        "--recon-points",
+        type=int,
+        default=200_000,
+        metavar="N",
+        help="points sampled per mesh for the reconstruction metrics (default 200000)",
+    )
+    g.add_argument(
+        "--depth-views",
+        type=int,
+        default=1000,
+        metavar="N",
+        help="virtual views for Depth L1, 0 to skip (default 1000)",
+    )
 
 
 def default_preset(dataset) -> str:
@@ -184,20 +222,33 @@ def run(args: argparse.Namespace) -> int:
     else:
         T_world_first = np.eye(4)
         if dataset.has_ground_truth:
-            log.warning("frame %d has no ground-truth pose: the run starts from the identity, and the mesh is "
-                        "aligned by the ATE fit before it is compared", first.index)
+            log.warning(
+                "frame %d has no ground-truth pose: the run starts from the identity, and the mesh is "
+                "aligned by the ATE fit before it is compared",
+                first.index,
+            )
 
     run_dir = RunDirectory.create(args.out or default_out_dir(args.source))
     run_dir.write_config(cfg)
     run_dir.write_intrinsics(first.intrinsics)
-    options = RunOutputOptions(mesh=not args.no_mesh, mesh_cfg=cfg.mesh, gt_mesh=gt_mesh,
-                               first_pose_from_gt=first.T_world_cam is not None,
-                               recon_points=args.recon_points, depth_views=args.depth_views)
-    print(f"{dataset!r}: {len(indices)} frames, config {args.config or default_preset(dataset)}, "
-          + ("" if block_map is None else f"continuing {args.map} ({len(block_map)} blocks), ")
-          + f"writing to {run_dir.path}", file=sys.stderr)
+    options = RunOutputOptions(
+        mesh=not args.no_mesh,
+        mesh_cfg=cfg.mesh,
+        gt_mesh=gt_mesh,
+        first_pose_from_gt=first.T_world_cam is not None,
+        recon_points=args.recon_points,
+        depth_views=args.depth_views,
+    )
+    print(
+        f"{dataset!r}: {len(indices)} frames, config {args.config or default_preset(dataset)}, "
+        + ("" if block_map is None else f"continuing {args.map} ({len(block_map)} blocks), ")
+        + f"writing to {run_dir.path}",
+        file=sys.stderr,
+    )
 
-    _ext.prepare(cfg.grid_backend)  # a first-use compile of the C++ kernels is not the first frame's time
+    _ext.prepare(
+        cfg.grid_backend
+    )  # loading the C++ kernels (compiling them, in the fallback) is not the first frame's time
     if args.live:
         from ..live import LiveSlam
 
@@ -213,8 +264,13 @@ def run(args: argparse.Namespace) -> int:
             status, live_metrics = _process(slam, dataset, indices, first, run_log), {}
     except Exception as exc:
         wall_s = time.perf_counter() - t_start
-        log.error("the run failed (%s: %s); writing the %d frames processed so far to %s",
-                  type(exc).__name__, exc, slam.n_frames, run_dir.path)
+        log.error(
+            "the run failed (%s: %s); writing the %d frames processed so far to %s",
+            type(exc).__name__,
+            exc,
+            slam.n_frames,
+            run_dir.path,
+        )
         try:
             if args.live:
                 slam.close(timeout_s=60.0)
@@ -227,8 +283,11 @@ def run(args: argparse.Namespace) -> int:
         raise
     wall_s = time.perf_counter() - t_start
     if status == "interrupted":
-        print(f"interrupted after {slam.n_frames} of {len(indices)} frames: writing what was computed "
-              f"(Ctrl-C again to abort)", file=sys.stderr)
+        print(
+            f"interrupted after {slam.n_frames} of {len(indices)} frames: writing what was computed "
+            f"(Ctrl-C again to abort)",
+            file=sys.stderr,
+        )
     try:
         summary = write_run(run_dir, slam, run_log, options, status, wall_s)
         if live_metrics:
@@ -256,8 +315,12 @@ def _process(slam, dataset, indices: range, first, run_log) -> str:
                 result = slam.process(frame)
                 run_log.end(result)
                 bar.update(1)
-                bar.set_postfix(fps=f"{bar.n / max(time.perf_counter() - t0, 1e-9):.2f}", blocks=result.n_blocks,
-                                kf=len(slam.keyframes), refresh=False)
+                bar.set_postfix(
+                    fps=f"{bar.n / max(time.perf_counter() - t0, 1e-9):.2f}",
+                    blocks=result.n_blocks,
+                    kf=len(slam.keyframes),
+                    refresh=False,
+                )
         except KeyboardInterrupt:
             return "interrupted"
     return "complete"
@@ -283,7 +346,7 @@ def _process_live(slam, dataset, indices: range, first, run_log, rate: float) ->
                 if newest < k:  # the next frame has not arrived yet
                     time.sleep(arrival_s[k] - now)
                     continue
-                chosen = k + slam.next_frame(stamps[k:newest + 1])
+                chosen = k + slam.next_frame(stamps[k : newest + 1])
                 n_dropped += chosen - k
                 frame = first if chosen == 0 else dataset[indices[chosen]]
                 run_log.begin(frame)
@@ -306,19 +369,26 @@ def _print_summary(summary) -> None:
         v = m.get(key)
         return "n/a" if v is None else f"{v:.{digits}f}{' ' + unit if unit else ''}"
 
-    rows = [("status", f"{summary.status}, {summary.n_frames} frames"),
-            ("blocks / parameters", f"{m.get('n_blocks')} / {fmt('param_mb', 'MB', 2)}"),
-            ("keyframes", str(m.get("n_keyframes"))),
-            ("tracking failures", str(m.get("n_tracking_failures"))),
-            ("time per frame", f"{fmt('s_per_frame', 's')} engine, {fmt('wall_s_per_frame', 's')} wall"),
-            ("tracking / mapping per frame", f"{fmt('track_ms_mean', 'ms', 1)} / {fmt('map_ms_mean', 'ms', 1)}")]
+    rows = [
+        ("status", f"{summary.status}, {summary.n_frames} frames"),
+        ("blocks / parameters", f"{m.get('n_blocks')} / {fmt('param_mb', 'MB', 2)}"),
+        ("keyframes", str(m.get("n_keyframes"))),
+        ("tracking failures", str(m.get("n_tracking_failures"))),
+        ("time per frame", f"{fmt('s_per_frame', 's')} engine, {fmt('wall_s_per_frame', 's')} wall"),
+        ("tracking / mapping per frame", f"{fmt('track_ms_mean', 'ms', 1)} / {fmt('map_ms_mean', 'ms', 1)}"),
+    ]
     if "ate_rmse_cm" in m:
         rows.append(("ATE RMSE", f"{fmt('ate_rmse_cm', 'cm')} ({m.get('n_poses')} poses)"))
     if "accuracy_cm" in m:
-        rows += [("accuracy / completion", f"{fmt('accuracy_cm', 'cm')} / {fmt('completion_cm', 'cm')} "
-                                           f"(sampling floor {fmt('recon_floor_cm', 'cm')})"),
-                 ("completion ratio", fmt("completion_ratio_pct", "%", 2)),
-                 ("depth L1", fmt("depth_l1_cm", "cm"))]
+        rows += [
+            (
+                "accuracy / completion",
+                f"{fmt('accuracy_cm', 'cm')} / {fmt('completion_cm', 'cm')} "
+                f"(sampling floor {fmt('recon_floor_cm', 'cm')})",
+            ),
+            ("completion ratio", fmt("completion_ratio_pct", "%", 2)),
+            ("depth L1", fmt("depth_l1_cm", "cm")),
+        ]
     for s in summary.skipped:
         rows.append(("skipped", s))
     width = max(len(name) for name, _ in rows)

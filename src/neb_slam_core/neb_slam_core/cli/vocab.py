@@ -48,25 +48,59 @@ def _positive(text: str) -> int:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="vocab_command", required=True, metavar="ACTION")
-    t = sub.add_parser("train", help="build a vocabulary from synthetic renders",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    t = sub.add_parser(
+        "train",
+        help="build a vocabulary from synthetic renders",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     t.add_argument("out", metavar="OUT", help="vocabulary file to write (.npz)")
-    t.add_argument("--scenes", type=_positive, default=8, metavar="N",
-                   help=f"synthetic scenes rendered, presets {', '.join(TRAIN_PRESETS)} in turn (default: %(default)s)")
-    t.add_argument("--frames", type=_positive, default=30, metavar="N",
-                   help="frames per scene, evenly spaced along its trajectory (default: %(default)s)")
-    t.add_argument("--size", type=_size, default=(640, 480), metavar="WxH",
-                   help="render size (default: 640x480, the size of the usual RGB-D cameras)")
-    t.add_argument("--scene-seed", type=int, default=1000, metavar="S",
-                   help="seed of the first scene; scene i uses S + i (default: %(default)s; the benchmarks "
-                        "evaluate on seeds 0..3, so keep them out)")
+    t.add_argument(
+        "--scenes",
+        type=_positive,
+        default=8,
+        metavar="N",
+        help=f"synthetic scenes rendered, presets {', '.join(TRAIN_PRESETS)} in turn (default: %(default)s)",
+    )
+    t.add_argument(
+        "--frames",
+        type=_positive,
+        default=30,
+        metavar="N",
+        help="frames per scene, evenly spaced along its trajectory (default: %(default)s)",
+    )
+    t.add_argument(
+        "--size",
+        type=_size,
+        default=(640, 480),
+        metavar="WxH",
+        help="render size (default: 640x480, the size of the usual RGB-D cameras)",
+    )
+    t.add_argument(
+        "--scene-seed",
+        type=int,
+        default=1000,
+        metavar="S",
+        help="seed of the first scene; scene i uses S + i (default: %(default)s; the benchmarks "
+        "evaluate on seeds 0..3, so keep them out)",
+    )
     t.add_argument("--k", type=int, default=10, help="branching factor (default: %(default)s)")
     t.add_argument("--depth", type=int, default=4, help="tree depth L (default: %(default)s; K^L words at most)")
     t.add_argument("--seed", type=int, default=0, help="clustering seed (default: %(default)s)")
-    t.add_argument("--n-features", type=_positive, default=1000, metavar="N",
-                   help="ORB features per frame at most (default: %(default)s)")
-    t.add_argument("--iterations", type=_positive, default=10, metavar="N",
-                   help="k-majority iterations per node at most (default: %(default)s)")
+    t.add_argument(
+        "--n-features",
+        type=_positive,
+        default=1000,
+        metavar="N",
+        help="ORB features per frame at most (default: %(default)s)",
+    )
+    t.add_argument(
+        "--iterations",
+        type=_positive,
+        default=10,
+        metavar="N",
+        help="k-majority iterations per node at most (default: %(default)s)",
+    )
     i = sub.add_parser("info", help="print what a vocabulary file holds")
     i.add_argument("path", nargs="?", default="", metavar="FILE", help="vocabulary file (default: the shipped one)")
 
@@ -86,11 +120,15 @@ def _info(args: argparse.Namespace) -> int:
     leaves = vocab.children[:, 0] < 0
     print(f"file:        {args.path or shipped_vocabulary_path()}")
     print(f"tree:        k={vocab.branching}, L={vocab.depth}, {vocab.n_words} words, {vocab.n_nodes} nodes")
-    print(f"idf:         {float(vocab.idf.min()):.3f}..{float(vocab.idf.max()):.3f}, "
-          f"{int(np.sum(vocab.idf == 0))} words with weight 0")
+    print(
+        f"idf:         {float(vocab.idf.min()):.3f}..{float(vocab.idf.max()):.3f}, "
+        f"{int(np.sum(vocab.idf == 0))} words with weight 0"
+    )
     print(f"leaves:      {int(leaves.sum())}")
-    print(f"training:    {vocab.training.n_images} images, {vocab.training.n_descriptors} descriptors, "
-          f"seed {vocab.training.seed}")
+    print(
+        f"training:    {vocab.training.n_images} images, {vocab.training.n_descriptors} descriptors, "
+        f"seed {vocab.training.seed}"
+    )
     print(f"source:      {vocab.training.source}")
     print(f"load time:   {seconds * 1e3:.1f} ms")
     return 0
@@ -107,7 +145,7 @@ def _train(args: argparse.Namespace) -> int:
     from ..synth.generate import build_sequence, resolve_spec
     from ..synth.render import Renderer
 
-    if args.k < 2 or args.depth < 1 or args.k ** args.depth > 10 ** 7:
+    if args.k < 2 or args.depth < 1 or args.k**args.depth > 10**7:
         raise ConfigError(f"vocab train: need --k >= 2, --depth >= 1 and k^depth <= 10^7, got {args.k}, {args.depth}")
     out = Path(args.out)
     extractor = OrbExtractor(OrbParams(n_features=args.n_features))
@@ -129,20 +167,34 @@ def _train(args: argparse.Namespace) -> int:
                 bar.update(1)
     t_render = time.perf_counter() - t0
     n_desc = sum(len(d) for d in descriptors)
-    print(f"{len(descriptors)} frames, {n_desc} ORB descriptors ({n_desc / max(1, len(descriptors)):.0f} per frame) "
-          f"in {t_render:.0f} s")
-    source = (f"neb-slam vocab train: presets {'/'.join(TRAIN_PRESETS)} in turn, {args.scenes} scenes "
-              f"(seeds {args.scene_seed}..{args.scene_seed + args.scenes - 1}), {args.frames} frames each at "
-              f"{args.size[0]}x{args.size[1]}, ORB {args.n_features} features")
+    print(
+        f"{len(descriptors)} frames, {n_desc} ORB descriptors ({n_desc / max(1, len(descriptors)):.0f} per frame) "
+        f"in {t_render:.0f} s"
+    )
+    source = (
+        f"neb-slam vocab train: presets {'/'.join(TRAIN_PRESETS)} in turn, {args.scenes} scenes "
+        f"(seeds {args.scene_seed}..{args.scene_seed + args.scenes - 1}), {args.frames} frames each at "
+        f"{args.size[0]}x{args.size[1]}, ORB {args.n_features} features"
+    )
     t1 = time.perf_counter()
     with tqdm(desc="clustering", unit="node") as bar:
+
         def progress(done: int, total: int) -> None:
             bar.total = total
             bar.update(done - bar.n)
 
-        vocab = train_vocabulary(descriptors, branching=args.k, depth=args.depth, seed=args.seed,
-                                 max_iterations=args.iterations, source=source, progress=progress)
+        vocab = train_vocabulary(
+            descriptors,
+            branching=args.k,
+            depth=args.depth,
+            seed=args.seed,
+            max_iterations=args.iterations,
+            source=source,
+            progress=progress,
+        )
     vocab.save(out)
-    print(f"{out}: {vocab.n_words} words (k={vocab.branching}, L={vocab.depth}), {vocab.n_nodes} nodes, "
-          f"{out.stat().st_size / 1e6:.2f} MB; clustering {time.perf_counter() - t1:.0f} s")
+    print(
+        f"{out}: {vocab.n_words} words (k={vocab.branching}, L={vocab.depth}), {vocab.n_nodes} nodes, "
+        f"{out.stat().st_size / 1e6:.2f} MB; clustering {time.perf_counter() - t1:.0f} s"
+    )
     return 0

@@ -19,6 +19,7 @@ kept open (and reopened after a fork, so a worker process gets its own).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from dataclasses import dataclass
@@ -46,8 +47,9 @@ from .base import Dataset, associate_unique, check_intrinsics, register, warn_sk
 log = logging.getLogger(__name__)
 
 #: topic names of the TUM RGB-D benchmark's ROS 1 bags
-TUM_ROS1_TOPICS = BagTopics(rgb="/camera/rgb/image_color", depth="/camera/depth/image",
-                            camera_info="/camera/rgb/camera_info", ground_truth="")
+TUM_ROS1_TOPICS = BagTopics(
+    rgb="/camera/rgb/image_color", depth="/camera/depth/image", camera_info="/camera/rgb/camera_info", ground_truth=""
+)
 BAG_SUFFIXES = (".mcap", ".db3", ".bag")
 GT_MAX_DT_NS = 20_000_000  # 0.02 s
 
@@ -91,15 +93,25 @@ class BagDataset(Dataset):
             distortion still comes from camera_info when there is one.
     """
 
-    def __init__(self, root: str | Path, rgb_topic: str | None = None, depth_topic: str | None = None,
-                 camera_info_topic: str | None = None, ground_truth_topic: str | None = None,
-                 depth_scale: float = 0.001, sync_slop_s: float = 0.02, intrinsics: Intrinsics | None = None):
+    def __init__(
+        self,
+        root: str | Path,
+        rgb_topic: str | None = None,
+        depth_topic: str | None = None,
+        camera_info_topic: str | None = None,
+        ground_truth_topic: str | None = None,
+        depth_scale: float = 0.001,
+        sync_slop_s: float = 0.02,
+        intrinsics: Intrinsics | None = None,
+    ):
         self._reader = None
         self._reader_pid = -1
         self.root = Path(root)
         if not is_bag_path(self.root):
-            raise DatasetError(self.root, "not a bag: expected a ROS 2 bag directory with metadata.yaml, "
-                                          f"or a {', '.join(BAG_SUFFIXES)} file")
+            raise DatasetError(
+                self.root,
+                f"not a bag: expected a ROS 2 bag directory with metadata.yaml, or a {', '.join(BAG_SUFFIXES)} file",
+            )
         if not depth_scale > 0:
             raise DatasetError(self.root, f"depth_scale must be > 0 metres per unit, got {depth_scale}")
         if not sync_slop_s >= 0:
@@ -109,8 +121,9 @@ class BagDataset(Dataset):
         self._intrinsics_override = intrinsics
         reader = self._open()
         try:
-            self.topics = self._resolve_topics(reader, reader.topics, rgb_topic, depth_topic, camera_info_topic,
-                                               ground_truth_topic)
+            self.topics = self._resolve_topics(
+                reader, reader.topics, rgb_topic, depth_topic, camera_info_topic, ground_truth_topic
+            )
             # connection table: the connections of the image topics, in a fixed order (rebuilt on reopen)
             self._conn_topics = [self.topics.rgb, self.topics.depth]
             self._conns = self._connection_table(reader)
@@ -144,13 +157,11 @@ class BagDataset(Dataset):
     def close(self) -> None:
         """Close the bag reader (reading a frame afterwards reopens it)."""
         if getattr(self, "_reader", None) is not None and self._reader_pid == os.getpid():
-            try:
+            with contextlib.suppress(Exception):  # closing is best effort
                 self._reader.close()
-            except Exception:  # closing is best effort
-                pass
         self._reader = None
 
-    def __enter__(self) -> "BagDataset":
+    def __enter__(self) -> BagDataset:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -185,7 +196,9 @@ class BagDataset(Dataset):
                 have = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(topics.items())) or "none"
                 raise DatasetError(self.root, f"{role} topic {topic} not found; the bag's topics: {have}")
             if topics[topic].msgtype != msgtype:
-                raise DatasetError(self.root, f"{role} topic {topic} has type {topics[topic].msgtype}, expected {msgtype}")
+                raise DatasetError(
+                    self.root, f"{role} topic {topic} has type {topics[topic].msgtype}, expected {msgtype}"
+                )
             return topic
 
         def by_name(*names: str) -> str | None:
@@ -202,13 +215,19 @@ class BagDataset(Dataset):
             listing = ", ".join(f"{t} ({e})" for t, e in encodings.items()) or "none"
             if rgb is None:
                 if len(colour) != 1:
-                    raise DatasetError(self.root, f"colour topic {default.rgb} not found and {len(colour)} Image topics "
-                                                  f"have a colour encoding (Image topics: {listing}); pass rgb_topic")
+                    raise DatasetError(
+                        self.root,
+                        f"colour topic {default.rgb} not found and {len(colour)} Image topics "
+                        f"have a colour encoding (Image topics: {listing}); pass rgb_topic",
+                    )
                 rgb = colour[0]
             if depth is None:
                 if len(depthish) != 1:
-                    raise DatasetError(self.root, f"depth topic {default.depth} not found and {len(depthish)} Image topics "
-                                                  f"have a depth encoding (Image topics: {listing}); pass depth_topic")
+                    raise DatasetError(
+                        self.root,
+                        f"depth topic {default.depth} not found and {len(depthish)} Image topics "
+                        f"have a depth encoding (Image topics: {listing}); pass depth_topic",
+                    )
                 depth = depthish[0]
         require(rgb, IMAGE_TYPE, "colour")
         require(depth, IMAGE_TYPE, "depth")
@@ -224,8 +243,11 @@ class BagDataset(Dataset):
             if info is None and self._intrinsics_override is not None:
                 info = ""  # not needed
             if info is None:
-                raise DatasetError(self.root, f"camera info topic {default.camera_info} not found (nor {sibling}); "
-                                              f"CameraInfo topics: {', '.join(infos) or 'none'}; pass camera_info_topic")
+                raise DatasetError(
+                    self.root,
+                    f"camera info topic {default.camera_info} not found (nor {sibling}); "
+                    f"CameraInfo topics: {', '.join(infos) or 'none'}; pass camera_info_topic",
+                )
         if info:
             require(info, CAMERA_INFO_TYPE, "camera info")
 
@@ -243,7 +265,9 @@ class BagDataset(Dataset):
         try:
             return reader.deserialize(raw, conn.msgtype)
         except Exception as exc:  # rosbags raises several error types for corrupt data
-            raise DatasetError(self.root, f"topic {conn.topic}: cannot decode a {conn.msgtype} message: {exc}") from None
+            raise DatasetError(
+                self.root, f"topic {conn.topic}: cannot decode a {conn.msgtype} message: {exc}"
+            ) from None
 
     def _index(self, reader) -> None:
         t = self.topics
@@ -275,7 +299,9 @@ class BagDataset(Dataset):
                     try:
                         gt_poses.append(pose_from_msg(msg))
                     except ValueError as exc:
-                        raise DatasetError(self.root, f"topic {t.ground_truth}: message {len(gt_poses)}: {exc}") from None
+                        raise DatasetError(
+                            self.root, f"topic {t.ground_truth}: message {len(gt_poses)}: {exc}"
+                        ) from None
                     gt_stamps.append(stamp_ns_of(msg))
         except DatasetError:
             raise
@@ -299,16 +325,20 @@ class BagDataset(Dataset):
                 raise DatasetError(self.root, f"topic {topic} has no messages")
             for j, (w, h, enc) in enumerate(shapes[topic]):
                 if enc not in allowed:
-                    raise DatasetError(self.root, f"topic {topic}: message {j} has encoding {enc!r}, "
-                                                  f"expected one of {', '.join(allowed)}")
+                    raise DatasetError(
+                        self.root,
+                        f"topic {topic}: message {j} has encoding {enc!r}, expected one of {', '.join(allowed)}",
+                    )
                 if (w, h) != size:
-                    raise DatasetError(self.root, f"topic {topic}: message {j} is {w}x{h} but {info_source} "
-                                                  f"says {size[0]}x{size[1]}")
+                    raise DatasetError(
+                        self.root, f"topic {topic}: message {j} is {w}x{h} but {info_source} says {size[0]}x{size[1]}"
+                    )
 
         def as_index(cols) -> _ImageIndex:
             c, lg, o, s = cols
-            return _ImageIndex(np.asarray(c, np.int64), np.asarray(lg, np.int64), np.asarray(o, np.int64),
-                               np.asarray(s, np.int64))
+            return _ImageIndex(
+                np.asarray(c, np.int64), np.asarray(lg, np.int64), np.asarray(o, np.int64), np.asarray(s, np.int64)
+            )
 
         rgb_ix, depth_ix = as_index(streams[t.rgb]), as_index(streams[t.depth])
         pair = associate_unique(rgb_ix.stamp_ns, depth_ix.stamp_ns, int(round(self.sync_slop_s * 1e9)))
@@ -316,13 +346,21 @@ class BagDataset(Dataset):
         keep = keep[np.argsort(rgb_ix.stamp_ns[keep], kind="stable")]
         n_rgb, n_depth = len(rgb_ix.stamp_ns), len(depth_ix.stamp_ns)
         unused_depth = n_depth - len(keep)
-        why = (f"colour images on {t.rgb} with no depth on {t.depth} within {self.sync_slop_s} s "
-               f"({unused_depth} of {n_depth} depth images unused)")
+        why = (
+            f"colour images on {t.rgb} with no depth on {t.depth} within {self.sync_slop_s} s "
+            f"({unused_depth} of {n_depth} depth images unused)"
+        )
         if len(keep) < n_rgb:
             warn_skipped(self.root, n_rgb - len(keep), n_rgb, why)
         elif unused_depth:
-            log.warning("%s: %d of %d depth images on %s have no colour image within %s s (unused)",
-                        self.root, unused_depth, n_depth, t.depth, self.sync_slop_s)
+            log.warning(
+                "%s: %d of %d depth images on %s have no colour image within %s s (unused)",
+                self.root,
+                unused_depth,
+                n_depth,
+                t.depth,
+                self.sync_slop_s,
+            )
         self._rgb_ix, self._depth_ix = rgb_ix, depth_ix
         self._rgb_rows, self._depth_rows = keep, pair[keep]
         self._stamps_ns = rgb_ix.stamp_ns[keep]
@@ -334,8 +372,13 @@ class BagDataset(Dataset):
             gi = associate_unique(self._stamps_ns, np.asarray(gt_stamps, np.int64), GT_MAX_DT_NS)
             n_missing = int((gi < 0).sum())
             if n_missing:
-                log.warning("%s: %d of %d frames have no ground-truth pose on %s within 0.02 s (kept, without pose)",
-                            self.root, n_missing, len(gi), t.ground_truth)
+                log.warning(
+                    "%s: %d of %d frames have no ground-truth pose on %s within 0.02 s (kept, without pose)",
+                    self.root,
+                    n_missing,
+                    len(gi),
+                    t.ground_truth,
+                )
             self._poses = [gt_poses[j] if j >= 0 else None for j in gi]
 
     def ground_truth(self):
@@ -390,7 +433,9 @@ class BagDataset(Dataset):
         for key, (ix, r) in zip(keys, wanted):
             if key not in found:
                 topic = self._conns[int(ix.conn[r])].topic
-                raise DatasetError(self.root, f"topic {topic}: message at {key[1]} ns vanished since the bag was indexed")
+                raise DatasetError(
+                    self.root, f"topic {topic}: message at {key[1]} ns vanished since the bag was indexed"
+                )
             conn, raw = found[key]
             out.append(self._deserialize(reader, raw, conn))
         return out[0], out[1]

@@ -10,9 +10,9 @@ from __future__ import annotations
 import logging
 import re
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -97,7 +97,9 @@ def loader_class(name: str) -> type[Dataset]:
     try:
         return _REGISTRY[name.lower()]
     except KeyError:
-        raise DatasetError(None, f"unknown dataset format {name!r}; choose one of: {', '.join(sorted(_REGISTRY))}") from None
+        raise DatasetError(
+            None, f"unknown dataset format {name!r}; choose one of: {', '.join(sorted(_REGISTRY))}"
+        ) from None
 
 
 def open_dataset(path: str | Path, fmt: str | None = None, **options) -> Dataset:
@@ -110,7 +112,9 @@ def open_dataset(path: str | Path, fmt: str | None = None, **options) -> Dataset
     _import_loaders()
     matches = [cls for cls in _REGISTRY.values() if cls.detect(path)]
     if not matches:
-        raise DatasetError(path, f"cannot tell the dataset format from the layout; pass one of: {', '.join(sorted(_REGISTRY))}")
+        raise DatasetError(
+            path, f"cannot tell the dataset format from the layout; pass one of: {', '.join(sorted(_REGISTRY))}"
+        )
     if len(matches) > 1:
         names = ", ".join(sorted(cls.name for cls in matches))
         raise DatasetError(path, f"layout matches several formats ({names}); pass the format explicitly")
@@ -144,8 +148,9 @@ def read_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def read_depth(path: Path, scale: float, invalid_value: int | None = None,
-               expected_size: tuple[int, int] | None = None) -> np.ndarray:
+def read_depth(
+    path: Path, scale: float, invalid_value: int | None = None, expected_size: tuple[int, int] | None = None
+) -> np.ndarray:
     """Read a 16-bit depth PNG as float32 metres (``value / scale``; 0 and ``invalid_value`` -> 0).
 
     ``expected_size`` = (W, H) is checked when given.
@@ -157,7 +162,9 @@ def read_depth(path: Path, scale: float, invalid_value: int | None = None,
         shape = "x".join(map(str, raw.shape))
         raise DatasetError(path, f"depth image must be 16-bit single-channel, got {raw.dtype} with shape {shape}")
     if expected_size is not None and (raw.shape[1], raw.shape[0]) != tuple(expected_size):
-        raise DatasetError(path, f"depth image is {raw.shape[1]}x{raw.shape[0]}, expected {expected_size[0]}x{expected_size[1]}")
+        raise DatasetError(
+            path, f"depth image is {raw.shape[1]}x{raw.shape[0]}, expected {expected_size[0]}x{expected_size[1]}"
+        )
     depth = raw.astype(np.float32) / np.float32(scale)
     if invalid_value is not None:
         depth[raw == invalid_value] = 0.0
@@ -173,7 +180,9 @@ def read_matrix(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:
     except ValueError:
         raise DatasetError(path, f"{what}: expected whitespace-separated numbers") from None
     if values.size != int(np.prod(shape)):
-        raise DatasetError(path, f"{what}: expected {int(np.prod(shape))} numbers ({'x'.join(map(str, shape))}), got {values.size}")
+        raise DatasetError(
+            path, f"{what}: expected {int(np.prod(shape))} numbers ({'x'.join(map(str, shape))}), got {values.size}"
+        )
     return values.reshape(shape)
 
 
@@ -334,8 +343,11 @@ class FrameListDataset(Dataset):
         depth = read_depth(f.depth_path, self.depth_scale, self.depth_invalid_value, expected_size=size)
         rgb = read_rgb(f.rgb_path, size if self.resize_rgb else None)
         if (rgb.shape[1], rgb.shape[0]) != size:
-            raise DatasetError(f.rgb_path, f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]} "
-                                           "(the size of the intrinsics)")
+            raise DatasetError(
+                f.rgb_path,
+                f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]} "
+                "(the size of the intrinsics)",
+            )
         pose = None if f.T_world_cam is None else f.T_world_cam.copy()
         return RgbdFrame(rgb, depth, self.intrinsics, f.stamp_ns, pose)
 
@@ -346,7 +358,9 @@ def pair_by_number(root: Path, rgb_files: dict[int, Path], depth_files: dict[int
     Colour frames without a depth partner are dropped with one summary warning.
     """
     keep = [n for n in rgb_files if n in depth_files]
-    warn_skipped(root, len(rgb_files) - len(keep), len(rgb_files), "colour images with no depth image of the same number")
+    warn_skipped(
+        root, len(rgb_files) - len(keep), len(rgb_files), "colour images with no depth image of the same number"
+    )
     return keep
 
 
@@ -356,6 +370,8 @@ def poses_by_image_order(poses: Sequence, rgb_files: dict[int, Path], pose_path:
     Raises :class:`DatasetError` naming ``pose_path`` when the counts differ.
     """
     if len(poses) != len(rgb_files):
-        raise DatasetError(pose_path, f"{len(poses)} poses for {len(rgb_files)} colour images in {folder}/; "
-                                      "expected one pose per colour image")
+        raise DatasetError(
+            pose_path,
+            f"{len(poses)} poses for {len(rgb_files)} colour images in {folder}/; expected one pose per colour image",
+        )
     return dict(zip(rgb_files, poses))

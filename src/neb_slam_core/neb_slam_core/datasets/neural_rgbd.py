@@ -23,16 +23,35 @@ from ..errors import DatasetError
 from ..geometry.se3 import GL_TO_CV
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
-from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, poses_by_image_order, read_matrix, read_number_rows, register, warn_skipped)
+from .base import (
+    FrameFiles,
+    FrameListDataset,
+    check_fps,
+    check_intrinsics,
+    fps_stamp_ns,
+    numbered_files,
+    pair_by_number,
+    poses_by_image_order,
+    read_matrix,
+    read_number_rows,
+    register,
+    warn_skipped,
+)
 
 DEPTH_SCALE = 1000.0
 
 
 def read_stacked_poses(path: Path) -> np.ndarray:
     """Read ``poses.txt``: 4x4 matrices stacked 4 rows each -> ``(N, 4, 4)`` float64 (may hold nan)."""
-    rows = [values for _, values in read_number_rows(
-        path, 4, "one row of a 4x4", "pose file not found (expected 4x4 camera-to-world matrices stacked, 4 rows each)")]
+    rows = [
+        values
+        for _, values in read_number_rows(
+            path,
+            4,
+            "one row of a 4x4",
+            "pose file not found (expected 4x4 camera-to-world matrices stacked, 4 rows each)",
+        )
+    ]
     if len(rows) % 4:
         raise DatasetError(path, f"{len(rows)} rows is not a whole number of 4x4 matrices (4 rows each)")
     return np.asarray(rows, dtype=np.float64).reshape(-1, 4, 4)
@@ -83,7 +102,9 @@ class NeuralRgbdDataset(FrameListDataset):
             focal = float(read_matrix(focal_path, (1,), "focal length (one number, pixels)")[0])
             raw = cv2.imread(str(self.frames[0].depth_path), cv2.IMREAD_UNCHANGED)
             if raw is None:
-                raise DatasetError(self.frames[0].depth_path, "depth image missing or unreadable (expected a 16-bit PNG)")
+                raise DatasetError(
+                    self.frames[0].depth_path, "depth image missing or unreadable (expected a 16-bit PNG)"
+                )
             h, w = raw.shape[:2]
             self.intrinsics = check_intrinsics(Intrinsics(focal, focal, w / 2.0, h / 2.0, w, h), focal_path)
         else:
@@ -91,5 +112,9 @@ class NeuralRgbdDataset(FrameListDataset):
 
     @classmethod
     def detect(cls, path: Path) -> bool:
-        return (path.is_dir() and (path / "images").is_dir() and (path / "poses.txt").is_file()
-                and (path / "focal.txt").is_file())
+        return (
+            path.is_dir()
+            and (path / "images").is_dir()
+            and (path / "poses.txt").is_file()
+            and (path / "focal.txt").is_file()
+        )

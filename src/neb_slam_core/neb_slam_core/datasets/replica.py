@@ -19,8 +19,18 @@ import numpy as np
 from ..errors import DatasetError
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
-from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, poses_by_image_order, read_number_rows, register)
+from .base import (
+    FrameFiles,
+    FrameListDataset,
+    check_fps,
+    check_intrinsics,
+    fps_stamp_ns,
+    numbered_files,
+    pair_by_number,
+    poses_by_image_order,
+    read_number_rows,
+    register,
+)
 
 REPLICA_INTRINSICS = Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
 DEPTH_SCALE = 6553.5
@@ -31,8 +41,12 @@ DEPTH_PATTERN = r"depth(\d+)\.png"
 
 def read_replica_trajectory(path: Path) -> list[np.ndarray]:
     """Read ``traj.txt``: one row-major 4x4 camera-to-world per non-empty line -> list of ``(4, 4)`` float64."""
-    rows = read_number_rows(path, 16, "a row-major 4x4", "trajectory file not found (expected one row-major 4x4 "
-                                                         "camera-to-world, 16 numbers, per line)")
+    rows = read_number_rows(
+        path,
+        16,
+        "a row-major 4x4",
+        "trajectory file not found (expected one row-major 4x4 camera-to-world, 16 numbers, per line)",
+    )
     poses = [check_rigid_pose(values.reshape(4, 4), path, f"line {lineno}") for lineno, values in rows]
     return poses
 
@@ -51,7 +65,9 @@ class ReplicaDataset(FrameListDataset):
 
     def __init__(self, root: str | Path, intrinsics: Intrinsics | None = None, fps: float = 30.0):
         self.root = Path(root)
-        self.intrinsics = check_intrinsics(REPLICA_INTRINSICS if intrinsics is None else intrinsics, "intrinsics= argument")
+        self.intrinsics = check_intrinsics(
+            REPLICA_INTRINSICS if intrinsics is None else intrinsics, "intrinsics= argument"
+        )
         fps = check_fps(fps)
         results = self.root / "results"
         rgb_files = numbered_files(results, RGB_PATTERN, "colour images (frameNNNNNN.jpg)")
@@ -61,8 +77,10 @@ class ReplicaDataset(FrameListDataset):
         traj_path = self.root / TRAJ_FILE
         poses = read_replica_trajectory(traj_path)
         pose_of = poses_by_image_order(poses, rgb_files, traj_path, results.name)
-        self.frames = [FrameFiles(rgb_files[n], depth_files[n], fps_stamp_ns(n, fps), pose_of[n])
-                       for n in pair_by_number(self.root, rgb_files, depth_files)]
+        self.frames = [
+            FrameFiles(rgb_files[n], depth_files[n], fps_stamp_ns(n, fps), pose_of[n])
+            for n in pair_by_number(self.root, rgb_files, depth_files)
+        ]
 
     @classmethod
     def detect(cls, path: Path) -> bool:

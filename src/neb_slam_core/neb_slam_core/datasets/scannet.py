@@ -22,8 +22,18 @@ import numpy as np
 from ..errors import DatasetError
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
-from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, read_matrix, register, warn_skipped)
+from .base import (
+    FrameFiles,
+    FrameListDataset,
+    check_fps,
+    check_intrinsics,
+    fps_stamp_ns,
+    numbered_files,
+    pair_by_number,
+    read_matrix,
+    register,
+    warn_skipped,
+)
 
 DEPTH_SCALE = 1000.0
 INTRINSICS_FILE = Path("intrinsic") / "intrinsic_depth.txt"
@@ -68,8 +78,11 @@ class ScanNetDataset(FrameListDataset):
         missing = [n for n in rgb_files if n not in pose_files]
         if missing or len(pose_files) != len(rgb_files):
             detail = f"; no pose for {rgb_files[missing[0]].name} (expected {missing[0]}.txt)" if missing else ""
-            raise DatasetError(frames / "pose", f"{len(pose_files)} pose files for {len(rgb_files)} colour images; "
-                                                f"expected one N.txt per colour image N.jpg{detail}")
+            raise DatasetError(
+                frames / "pose",
+                f"{len(pose_files)} pose files for {len(rgb_files)} colour images; "
+                f"expected one N.txt per colour image N.jpg{detail}",
+            )
         with_depth = pair_by_number(self.root, rgb_files, depth_files)
 
         self.frames = []

@@ -21,8 +21,17 @@ from pathlib import Path
 from ..errors import DatasetError
 from ..io.trajectory import check_rigid_pose
 from ..types import Intrinsics
-from .base import (FrameFiles, FrameListDataset, check_fps, check_intrinsics, fps_stamp_ns, numbered_files,
-                   pair_by_number, read_matrix, register)
+from .base import (
+    FrameFiles,
+    FrameListDataset,
+    check_fps,
+    check_intrinsics,
+    fps_stamp_ns,
+    numbered_files,
+    pair_by_number,
+    read_matrix,
+    register,
+)
 
 SEVEN_SCENES_INTRINSICS = Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
 DEPTH_SCALE = 1000.0
@@ -42,8 +51,12 @@ def sequence_folder(root: Path, seq: str | int | None) -> Path:
         raise DatasetError(root, f"seq={seq!r} given but there are no seq-XX folders here")
     if seq is None:
         if len(seqs) > 1:
-            log.info("%s: reading %s (other sequences: %s; pick one with seq=)", root, seqs[0].name,
-                     ", ".join(p.name for p in seqs[1:]))
+            log.info(
+                "%s: reading %s (other sequences: %s; pick one with seq=)",
+                root,
+                seqs[0].name,
+                ", ".join(p.name for p in seqs[1:]),
+            )
         return seqs[0]
     name = f"seq-{int(seq):02d}" if isinstance(seq, int) else str(seq)
     if not (root / name).is_dir():
@@ -65,11 +78,13 @@ class SevenScenesDataset(FrameListDataset):
     depth_scale = DEPTH_SCALE
     depth_invalid_value = DEPTH_INVALID
 
-    def __init__(self, root: str | Path, seq: str | int | None = None, intrinsics: Intrinsics | None = None,
-                 fps: float = 30.0):
+    def __init__(
+        self, root: str | Path, seq: str | int | None = None, intrinsics: Intrinsics | None = None, fps: float = 30.0
+    ):
         self.root = Path(root)
-        self.intrinsics = check_intrinsics(SEVEN_SCENES_INTRINSICS if intrinsics is None else intrinsics,
-                                           "intrinsics= argument")
+        self.intrinsics = check_intrinsics(
+            SEVEN_SCENES_INTRINSICS if intrinsics is None else intrinsics, "intrinsics= argument"
+        )
         fps = check_fps(fps)
         if not self.root.is_dir():
             raise DatasetError(self.root, "sequence folder not found")
@@ -85,12 +100,16 @@ class SevenScenesDataset(FrameListDataset):
             if missing:
                 name = rgb_files[missing[0]].name
                 detail = f"; no pose for {name} (expected {name.split('.color.')[0]}.pose.txt)"
-            raise DatasetError(self.seq_dir, f"{len(pose_files)} pose files for {len(rgb_files)} colour images; "
-                                             f"expected one frame-NNNNNN.pose.txt per colour image{detail}")
+            raise DatasetError(
+                self.seq_dir,
+                f"{len(pose_files)} pose files for {len(rgb_files)} colour images; "
+                f"expected one frame-NNNNNN.pose.txt per colour image{detail}",
+            )
         self.frames = []
         for n in pair_by_number(self.seq_dir, rgb_files, depth_files):
-            T = check_rigid_pose(read_matrix(pose_files[n], (4, 4), "camera-to-world pose (4x4)"), pose_files[n],
-                                 "camera-to-world pose")
+            T = check_rigid_pose(
+                read_matrix(pose_files[n], (4, 4), "camera-to-world pose (4x4)"), pose_files[n], "camera-to-world pose"
+            )
             self.frames.append(FrameFiles(rgb_files[n], depth_files[n], fps_stamp_ns(n, fps), T))
 
     @classmethod

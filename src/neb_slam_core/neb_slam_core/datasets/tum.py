@@ -64,14 +64,21 @@ def read_intrinsics_json(path: Path) -> Intrinsics:
     """Read ``{"fx", "fy", "cx", "cy", "width", "height"}`` (written by ``neb-slam synth``)."""
     try:
         d = json.loads(path.read_text())
-        return Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+        return Intrinsics(
+            float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"])
+        )
     except (ValueError, KeyError, TypeError) as exc:
         raise DatasetError(path, f"expected a JSON object with fx, fy, cx, cy, width, height ({exc})") from None
 
 
 def write_intrinsics_json(path: Path, intr: Intrinsics) -> None:
-    path.write_text(json.dumps({"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
-                                "width": intr.width, "height": intr.height}, indent=2) + "\n")
+    path.write_text(
+        json.dumps(
+            {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy, "width": intr.width, "height": intr.height},
+            indent=2,
+        )
+        + "\n"
+    )
 
 
 @register("tum")
@@ -91,8 +98,11 @@ class TumDataset(Dataset):
         if intrinsics is None:
             cam = camera or camera_from_name(self.root.resolve().name)
             if cam is None:
-                raise DatasetError(self.root, "cannot tell the TUM sensor from the folder name (no 'freiburg1'/'fr1', "
-                                              f"'fr2', 'fr3'); pass camera= one of {', '.join(TUM_CAMERAS)} or explicit intrinsics")
+                raise DatasetError(
+                    self.root,
+                    "cannot tell the TUM sensor from the folder name (no 'freiburg1'/'fr1', "
+                    f"'fr2', 'fr3'); pass camera= one of {', '.join(TUM_CAMERAS)} or explicit intrinsics",
+                )
             if cam not in TUM_CAMERAS:
                 raise DatasetError(self.root, f"unknown TUM camera {cam!r}; choose one of {', '.join(TUM_CAMERAS)}")
             intrinsics, self.distortion = TUM_CAMERAS[cam]
@@ -118,8 +128,12 @@ class TumDataset(Dataset):
             idx = associate(self._stamps_ns, gt.stamps_ns, MAX_DT_NS)
             n_missing = int((idx < 0).sum())
             if n_missing:
-                log.warning("%s: %d of %d frames have no ground-truth pose within 0.02 s (kept, without pose)",
-                            self.root, n_missing, len(idx))
+                log.warning(
+                    "%s: %d of %d frames have no ground-truth pose within 0.02 s (kept, without pose)",
+                    self.root,
+                    n_missing,
+                    len(idx),
+                )
             self._poses = [gt.poses[j] if j >= 0 else None for j in idx]
 
     @classmethod
@@ -141,8 +155,11 @@ class TumDataset(Dataset):
         size = (self.intrinsics.width, self.intrinsics.height)
         rgb = read_rgb(self.root / self._rgb[i])
         if (rgb.shape[1], rgb.shape[0]) != size:
-            raise DatasetError(self.root / self._rgb[i], f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]}")
+            raise DatasetError(
+                self.root / self._rgb[i], f"colour image is {rgb.shape[1]}x{rgb.shape[0]}, expected {size[0]}x{size[1]}"
+            )
         depth = read_depth(self.root / self._depth[i], DEPTH_SCALE, expected_size=size)
         pose = None if self._poses is None or self._poses[i] is None else self._poses[i].copy()
-        return RgbdFrame(rgb, depth, self.intrinsics, int(self._stamps_ns[i]), pose,
-                         extras={"distortion": self.distortion})
+        return RgbdFrame(
+            rgb, depth, self.intrinsics, int(self._stamps_ns[i]), pose, extras={"distortion": self.distortion}
+        )

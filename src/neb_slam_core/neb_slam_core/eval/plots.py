@@ -6,8 +6,8 @@ they hold no global state and work on a headless machine; :func:`save_figure` wr
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -31,8 +31,7 @@ def top_view_axes(positions: np.ndarray) -> tuple[int, int]:
     return int(a), int(b)
 
 
-def plot_trajectory(ate: AteResult, title: str | None = None,
-                    loops: Sequence[tuple[int, int, bool]] = ()) -> Figure:
+def plot_trajectory(ate: AteResult, title: str | None = None, loops: Sequence[tuple[int, int, bool]] = ()) -> Figure:
     """Top view of the aligned estimate against the ground truth, with start markers and error segments.
 
     The view is the plane of the two axes along which the ground truth extends most. ``loops``: loop
@@ -58,8 +57,17 @@ def plot_trajectory(ate: AteResult, title: str | None = None,
             p, q = est[where[int(stamp)]], est[where[int(loop_stamp)]]
             label = None if applied in labelled else ("loop closure" if applied else "loop (not applied)")
             labelled.add(applied)
-            ax.plot([p[a], q[a]], [p[b], q[b]], color="tab:red", linestyle="-" if applied else ":",
-                    linewidth=1.5, marker="o", markersize=3, zorder=5, label=label)
+            ax.plot(
+                [p[a], q[a]],
+                [p[b], q[b]],
+                color="tab:red",
+                linestyle="-" if applied else ":",
+                linewidth=1.5,
+                marker="o",
+                markersize=3,
+                zorder=5,
+                label=label,
+            )
     ax.set_xlabel(f"{_AXIS_NAMES[a]} [m]")
     ax.set_ylabel(f"{_AXIS_NAMES[b]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
@@ -85,8 +93,14 @@ def plot_ate_over_time(ate: AteResult, title: str | None = None) -> Figure:
     return fig
 
 
-def plot_block_allocation(positions_xyz: np.ndarray, block_centres_xyz: np.ndarray, edge_m: float,
-                          alloc_frame_indices: np.ndarray, alloc_cam_xyz: np.ndarray, title: str | None = None) -> Figure:
+def plot_block_allocation(
+    positions_xyz: np.ndarray,
+    block_centres_xyz: np.ndarray,
+    edge_m: float,
+    alloc_frame_indices: np.ndarray,
+    alloc_cam_xyz: np.ndarray,
+    title: str | None = None,
+) -> Figure:
     """Top view of the neural blocks and the trajectory that allocated them (the paper's allocation figure).
 
     Each block is drawn as the outline of its ``edge_m`` square footprint around its centre, coloured by
@@ -112,8 +126,10 @@ def plot_block_allocation(positions_xyz: np.ndarray, block_centres_xyz: np.ndarr
     frames = np.asarray(alloc_frame_indices, dtype=np.int64).reshape(-1)
     cams = np.asarray(alloc_cam_xyz, dtype=np.float64).reshape(-1, 3)
     if not (len(centres) == len(frames) == len(cams)):
-        raise ValueError(f"plot_block_allocation: {len(centres)} block centres, {len(frames)} frame indices and "
-                         f"{len(cams)} camera positions; expected one of each per block")
+        raise ValueError(
+            f"plot_block_allocation: {len(centres)} block centres, {len(frames)} frame indices and "
+            f"{len(cams)} camera positions; expected one of each per block"
+        )
     ref = positions if len(positions) else centres
     a, b = top_view_axes(ref) if len(ref) else (0, 1)
     known = frames >= 0
@@ -126,16 +142,47 @@ def plot_block_allocation(positions_xyz: np.ndarray, block_centres_xyz: np.ndarr
     ax = fig.add_subplot()
     for m, (c, f) in enumerate(zip(centres, frames)):
         colour = cmap(norm(f)) if f >= 0 else "0.6"
-        ax.add_patch(Rectangle((c[a] - half, c[b] - half), edge_m, edge_m, fill=True, facecolor=colour, alpha=0.08,
-                               edgecolor="none", zorder=1))
-        ax.add_patch(Rectangle((c[a] - half, c[b] - half), edge_m, edge_m, fill=False, edgecolor=colour,
-                               linewidth=1.5, zorder=2, gid=f"block-{m}"))
+        ax.add_patch(
+            Rectangle(
+                (c[a] - half, c[b] - half),
+                edge_m,
+                edge_m,
+                fill=True,
+                facecolor=colour,
+                alpha=0.08,
+                edgecolor="none",
+                zorder=1,
+            )
+        )
+        ax.add_patch(
+            Rectangle(
+                (c[a] - half, c[b] - half),
+                edge_m,
+                edge_m,
+                fill=False,
+                edgecolor=colour,
+                linewidth=1.5,
+                zorder=2,
+                gid=f"block-{m}",
+            )
+        )
         ax.annotate(str(m), (c[a], c[b]), ha="center", va="center", fontsize="small", color="0.25", zorder=2)
     if len(positions):
         ax.plot(positions[:, a], positions[:, b], color="black", linewidth=1.0, label="trajectory", zorder=3)
     if known.any():
-        ax.scatter(cams[known, a], cams[known, b], c=frames[known], cmap=cmap, norm=norm, marker="^", s=70,
-                   edgecolors="black", linewidths=0.6, zorder=4, label="allocating frame")
+        ax.scatter(
+            cams[known, a],
+            cams[known, b],
+            c=frames[known],
+            cmap=cmap,
+            norm=norm,
+            marker="^",
+            s=70,
+            edgecolors="black",
+            linewidths=0.6,
+            zorder=4,
+            label="allocating frame",
+        )
     ax.autoscale_view()
     ax.set_xlabel(f"{_AXIS_NAMES[a]} [m]")
     ax.set_ylabel(f"{_AXIS_NAMES[b]} [m]")

@@ -104,13 +104,13 @@ class RayCaster:
         depth = np.zeros((len(T), intrinsics.height * intrinsics.width), np.float32)
         chunk = max(1, MAX_RAYS_PER_CALL // len(dirs_cam))  # views per call: bounds the memory
         for s in range(0, len(T), chunk):
-            Tc = T[s:s + chunk]
+            Tc = T[s : s + chunk]
             dirs_world = (dirs_cam[None] @ np.swapaxes(Tc[:, :3, :3], 1, 2)).reshape(-1, 3)  # rows: R d
             origins = np.repeat(Tc[:, :3, 3], len(dirs_cam), axis=0)
             dist = self.first_hit_distance(origins, dirs_world).reshape(len(Tc), -1)
             # z-depth = distance along the unit ray times its cosine to the optical axis (1 / |d_cam|)
             z = dist * inv_len[None, :]
-            depth[s:s + chunk] = np.where(np.isfinite(z), z, 0.0)
+            depth[s : s + chunk] = np.where(np.isfinite(z), z, 0.0)
         depth = depth.reshape(len(T), intrinsics.height, intrinsics.width)
         return depth[0] if single else depth
 

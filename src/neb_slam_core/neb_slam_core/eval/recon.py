@@ -152,8 +152,14 @@ def sample_surface_points(mesh: trimesh.Trimesh, n_points: int, seed: int | np.r
     return np.asarray(points, dtype=np.float64)
 
 
-def visible_mask(points_world: np.ndarray, T_world_cams: np.ndarray, intrinsics: Intrinsics,
-                 occluder: RayCaster | None, config: CullConfig = CullConfig(), progress: bool = False) -> np.ndarray:
+def visible_mask(
+    points_world: np.ndarray,
+    T_world_cams: np.ndarray,
+    intrinsics: Intrinsics,
+    occluder: RayCaster | None,
+    config: CullConfig = CullConfig(),
+    progress: bool = False,
+) -> np.ndarray:
     """Which points at least one camera saw (frustum, depth range, not occluded; module docstring).
 
     Args:
@@ -199,8 +205,13 @@ def nearest_distances(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return np.asarray(dist, dtype=np.float64)
 
 
-def sample_virtual_views(gt_mesh: trimesh.Trimesh, gt_caster: RayCaster, config: DepthL1Config,
-                         rng: np.random.Generator, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def sample_virtual_views(
+    gt_mesh: trimesh.Trimesh,
+    gt_caster: RayCaster,
+    config: DepthL1Config,
+    rng: np.random.Generator,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
     """Draw accepted virtual views and their ground-truth depth (see the module docstring).
 
     Returns:
@@ -218,8 +229,11 @@ def sample_virtual_views(gt_mesh: trimesh.Trimesh, gt_caster: RayCaster, config:
         draws += k
         eyes = lo + rng.random((k, 3)) * (hi - lo)
         targets = sample_surface_points(gt_mesh, k, rng)
-        poses = [_look_at(e, t, rng.uniform(0.0, 2.0 * np.pi)) for e, t in zip(eyes, targets)
-                 if np.linalg.norm(t - e) >= config.min_view_distance_m]
+        poses = [
+            _look_at(e, t, rng.uniform(0.0, 2.0 * np.pi))
+            for e, t in zip(eyes, targets)
+            if np.linalg.norm(t - e) >= config.min_view_distance_m
+        ]
         if not poses:
             continue
         depth = gt_caster.render_depth(np.stack(poses), config.intrinsics)
@@ -231,8 +245,13 @@ def sample_virtual_views(gt_mesh: trimesh.Trimesh, gt_caster: RayCaster, config:
                 bar.update(1)
     bar.close()
     if len(accepted_T) < config.n_views:
-        log.warning("depth L1: only %d of %d virtual views saw at least %.0f%% ground truth after %d draws",
-                    len(accepted_T), config.n_views, 100 * config.min_gt_coverage, draws)
+        log.warning(
+            "depth L1: only %d of %d virtual views saw at least %.0f%% ground truth after %d draws",
+            len(accepted_T),
+            config.n_views,
+            100 * config.min_gt_coverage,
+            draws,
+        )
     h, w = config.intrinsics.height, config.intrinsics.width
     if not accepted_T:
         return np.zeros((0, 4, 4)), np.zeros((0, h, w), np.float32)
@@ -253,8 +272,14 @@ def _look_at(eye: np.ndarray, target: np.ndarray, roll_rad: float) -> np.ndarray
     return T
 
 
-def depth_l1(rec_caster: RayCaster, gt_depth: np.ndarray, T_world_cams: np.ndarray, intrinsics: Intrinsics,
-             batch_views: int = 16, progress: bool = False) -> tuple[float | None, float | None]:
+def depth_l1(
+    rec_caster: RayCaster,
+    gt_depth: np.ndarray,
+    T_world_cams: np.ndarray,
+    intrinsics: Intrinsics,
+    batch_views: int = 16,
+    progress: bool = False,
+) -> tuple[float | None, float | None]:
     """Mean ``|d_rec - d_gt|`` in metres over pixels valid in both, and the reconstruction's coverage.
 
     Args:
@@ -268,10 +293,15 @@ def depth_l1(rec_caster: RayCaster, gt_depth: np.ndarray, T_world_cams: np.ndarr
          % of ground-truth-valid pixels that the reconstruction also hit, or None without valid GT pixels).
     """
     abs_sum, n_both, n_gt = 0.0, 0, 0
-    for start in tqdm(range(0, len(T_world_cams), batch_views), desc="depth L1 render", unit="batch",
-                      disable=not progress, leave=False):
-        rec = rec_caster.render_depth(T_world_cams[start:start + batch_views], intrinsics)
-        gt = gt_depth[start:start + batch_views]
+    for start in tqdm(
+        range(0, len(T_world_cams), batch_views),
+        desc="depth L1 render",
+        unit="batch",
+        disable=not progress,
+        leave=False,
+    ):
+        rec = rec_caster.render_depth(T_world_cams[start : start + batch_views], intrinsics)
+        gt = gt_depth[start : start + batch_views]
         both = (gt > 0) & (rec > 0)
         abs_sum += float(np.abs(rec[both].astype(np.float64) - gt[both].astype(np.float64)).sum())
         n_both += int(both.sum())
@@ -280,9 +310,14 @@ def depth_l1(rec_caster: RayCaster, gt_depth: np.ndarray, T_world_cams: np.ndarr
     return (abs_sum / n_both if n_both else None), coverage
 
 
-def evaluate_depth_l1(rec_mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh, config: DepthL1Config = DepthL1Config(),
-                      seed: int = 0, T_world_cams: np.ndarray | None = None,
-                      progress: bool = False) -> tuple[float | None, float | None, int]:
+def evaluate_depth_l1(
+    rec_mesh: trimesh.Trimesh,
+    gt_mesh: trimesh.Trimesh,
+    config: DepthL1Config = DepthL1Config(),
+    seed: int = 0,
+    T_world_cams: np.ndarray | None = None,
+    progress: bool = False,
+) -> tuple[float | None, float | None, int]:
     """Depth L1 (metres) of ``rec_mesh`` against ``gt_mesh``.
 
     Views are drawn as in the module docstring, or given explicitly by ``T_world_cams`` ``(V, 4, 4)``.
@@ -300,9 +335,14 @@ def evaluate_depth_l1(rec_mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh, confi
     return l1, coverage, len(T)
 
 
-def evaluate_reconstruction(rec_mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh, config: ReconConfig = ReconConfig(),
-                            T_world_cams: np.ndarray | None = None, intrinsics: Intrinsics | None = None,
-                            progress: bool = True) -> ReconResult:
+def evaluate_reconstruction(
+    rec_mesh: trimesh.Trimesh,
+    gt_mesh: trimesh.Trimesh,
+    config: ReconConfig = ReconConfig(),
+    T_world_cams: np.ndarray | None = None,
+    intrinsics: Intrinsics | None = None,
+    progress: bool = True,
+) -> ReconResult:
     """Accuracy, completion, completion ratio and (when ``config.depth_l1.n_views > 0``) Depth L1.
 
     Args:
@@ -332,8 +372,11 @@ def evaluate_reconstruction(rec_mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh,
         rec_pts, gt_pts, gt_again = seen(rec_pts), seen(gt_pts), seen(gt_again)
         if len(rec_pts) == 0 or len(gt_pts) == 0:
             which = "reconstruction" if len(rec_pts) == 0 else "ground-truth"
-            raise DatasetError(None, f"no {which} surface is seen by the given cameras after culling "
-                                     "(are the mesh and the camera poses in the same world frame?)")
+            raise DatasetError(
+                None,
+                f"no {which} surface is seen by the given cameras after culling "
+                "(are the mesh and the camera poses in the same world frame?)",
+            )
     floor = nearest_distances(gt_again, gt_pts) if len(gt_again) else None  # culled away: no estimate
     acc = nearest_distances(rec_pts, gt_pts)
     comp = nearest_distances(gt_pts, rec_pts)

@@ -27,8 +27,16 @@ def merge_metrics(path: Path, new: dict) -> dict:
     return merged
 
 
-def trajectory_metrics(est, gt, *, max_dt_s: float = 0.02, align: bool = True, rpe_delta_s: float = 1.0,
-                       est_source: Path | None = None, gt_source: Path | None = None):
+def trajectory_metrics(
+    est,
+    gt,
+    *,
+    max_dt_s: float = 0.02,
+    align: bool = True,
+    rpe_delta_s: float = 1.0,
+    est_source: Path | None = None,
+    gt_source: Path | None = None,
+):
     """ATE and RPE of trajectory ``est`` against ``gt`` (both :class:`~neb_slam_core.io.trajectory.Trajectory`).
 
     Returns ``(metrics, ate)``: the JSON-ready figures this command writes (``ate_rmse_cm``, ...,
@@ -81,12 +89,24 @@ def write_trajectory_plots(ate, out_dir: Path, loops=()) -> list[Path]:
     and ``ate_over_time.png`` of ``ate`` in ``out_dir``; returns their paths."""
     from .plots import plot_ate_over_time, plot_trajectory, save_figure
 
-    return [save_figure(plot_trajectory(ate, loops=loops), out_dir / "trajectory.png"),
-            save_figure(plot_ate_over_time(ate), out_dir / "ate_over_time.png")]
+    return [
+        save_figure(plot_trajectory(ate, loops=loops), out_dir / "trajectory.png"),
+        save_figure(plot_ate_over_time(ate), out_dir / "ate_over_time.png"),
+    ]
 
 
-def evaluate_mesh_files(rec_path: Path, gt_mesh_path: Path, *, T_gt_rec=None, cull_poses=None, intrinsics=None,
-                        n_points: int = 200_000, threshold_cm: float = 5.0, depth_views: int = 1000, seed: int = 0):
+def evaluate_mesh_files(
+    rec_path: Path,
+    gt_mesh_path: Path,
+    *,
+    T_gt_rec=None,
+    cull_poses=None,
+    intrinsics=None,
+    n_points: int = 200_000,
+    threshold_cm: float = 5.0,
+    depth_views: int = 1000,
+    seed: int = 0,
+):
     """Reconstruction metrics of the mesh file ``rec_path`` against ``gt_mesh_path``.
 
     Args:
@@ -107,8 +127,12 @@ def evaluate_mesh_files(rec_path: Path, gt_mesh_path: Path, *, T_gt_rec=None, cu
     if T_gt_rec is not None:
         rec_mesh = rec_mesh.copy()
         rec_mesh.apply_transform(T_gt_rec)
-    config = ReconConfig(n_points=n_points, completion_threshold_m=threshold_cm / 100.0, seed=seed,
-                         depth_l1=replace(DepthL1Config(), n_views=depth_views))
+    config = ReconConfig(
+        n_points=n_points,
+        completion_threshold_m=threshold_cm / 100.0,
+        seed=seed,
+        depth_l1=replace(DepthL1Config(), n_views=depth_views),
+    )
     if cull_poses is None or intrinsics is None:
         cull_poses = intrinsics = None
     return evaluate_reconstruction(rec_mesh, gt_mesh, config, cull_poses, intrinsics)

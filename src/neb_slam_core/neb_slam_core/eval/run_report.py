@@ -22,8 +22,18 @@ import numpy as np
 
 from ..config import MeshConfig
 from ..errors import DatasetError
-from ..io.run_dir import (BLOCKS_PLOT_FILE, GROUNDTRUTH_FILE, INTRINSICS_FILE, MESH_FILE, STATUSES,
-                          TRAJECTORY_FILE, FrameLog, RunDirectory, RunLog, loop_log)
+from ..io.run_dir import (
+    BLOCKS_PLOT_FILE,
+    GROUNDTRUTH_FILE,
+    INTRINSICS_FILE,
+    MESH_FILE,
+    STATUSES,
+    TRAJECTORY_FILE,
+    FrameLog,
+    RunDirectory,
+    RunLog,
+    loop_log,
+)
 from ..io.trajectory import Trajectory
 
 if TYPE_CHECKING:  # the engine pulls torch; only needed for type hints here
@@ -71,7 +81,7 @@ class RunSummary:
     mesh: object = None  #: the mesh written to mesh.ply (a trimesh.Trimesh), None when none was
 
 
-def run_metrics(slam: "Slam", frames: list[FrameLog], wall_s: float, status: str) -> dict:
+def run_metrics(slam: Slam, frames: list[FrameLog], wall_s: float, status: str) -> dict:
     """The run's own figures (no ground truth needed).
 
     ``n_frames``: frames with a pose in trajectory.txt (an interruption inside the engine may leave one
@@ -109,21 +119,27 @@ def run_metrics(slam: "Slam", frames: list[FrameLog], wall_s: float, status: str
     }
 
 
-def block_allocations(slam: "Slam", frames: list[FrameLog], traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+def block_allocations(slam: Slam, frames: list[FrameLog], traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
     """For each block of the map, the input index of the frame that allocated it (-1: unknown) and that
     frame's current camera centre ``(M, 3)`` (NaN where unknown)."""
     n_blocks = len(slam.block_map)
     alloc_index = np.full(n_blocks, -1, dtype=np.int64)
     alloc_xyz = np.full((n_blocks, 3), np.nan)
-    for pos, f in enumerate(frames[:len(traj)]):
+    for pos, f in enumerate(frames[: len(traj)]):
         if f.result is not None and f.result.new_block_id is not None and f.result.new_block_id < n_blocks:
             alloc_index[f.result.new_block_id] = f.index
             alloc_xyz[f.result.new_block_id] = traj.poses[pos, :3, 3]
     return alloc_index, alloc_xyz
 
 
-def write_run(run_dir: RunDirectory, slam: "Slam", run_log: RunLog, options: RunOutputOptions,
-              status: str = "complete", wall_s: float = 0.0) -> RunSummary:
+def write_run(
+    run_dir: RunDirectory,
+    slam: Slam,
+    run_log: RunLog,
+    options: RunOutputOptions,
+    status: str = "complete",
+    wall_s: float = 0.0,
+) -> RunSummary:
     """Write every file of the run directory from the engine's current state (see the module docstring).
 
     Steps that cannot be done (ATE with fewer than 3 ground-truth poses, a mesh from an empty map) are
@@ -157,8 +173,9 @@ def write_run(run_dir: RunDirectory, slam: "Slam", run_log: RunLog, options: Run
     ate = None
     if len(gt):
         try:
-            ate_metrics, ate = trajectory_metrics(traj, gt, est_source=run_dir.file(TRAJECTORY_FILE),
-                                                  gt_source=run_dir.file(GROUNDTRUTH_FILE))
+            ate_metrics, ate = trajectory_metrics(
+                traj, gt, est_source=run_dir.file(TRAJECTORY_FILE), gt_source=run_dir.file(GROUNDTRUTH_FILE)
+            )
             metrics.update(ate_metrics)
         except DatasetError as exc:
             skip("ATE", str(exc))
@@ -169,8 +186,13 @@ def write_run(run_dir: RunDirectory, slam: "Slam", run_log: RunLog, options: Run
         marks = [(e["stamp_ns"], s, e["applied"]) for e in loops for s in e["loop_stamps_ns"]]
         summary.written += write_trajectory_plots(ate, run_dir.path, marks)
     alloc_index, alloc_xyz = block_allocations(slam, frames, traj)
-    fig = plot_block_allocation(traj.positions, slam.block_map.centres().detach().cpu().double().numpy().reshape(-1, 3),
-                                slam.block_map.block_cfg.edge_m, alloc_index, alloc_xyz)
+    fig = plot_block_allocation(
+        traj.positions,
+        slam.block_map.centres().detach().cpu().double().numpy().reshape(-1, 3),
+        slam.block_map.block_cfg.edge_m,
+        alloc_index,
+        alloc_xyz,
+    )
     summary.written.append(save_figure(fig, run_dir.file(BLOCKS_PLOT_FILE)))
 
     if len(slam.block_map) == 0:
@@ -207,16 +229,27 @@ def _recon_metrics(run_dir: RunDirectory, gt: Trajectory, ate, options: RunOutpu
         intrinsics = read_intrinsics_json(intr_path) if intr_path.is_file() else None
     if not options.first_pose_from_gt:
         if ate is None:
-            skip("reconstruction metrics", "the run did not start from a ground-truth pose and has no ATE "
-                                           "alignment to bring the mesh into the ground truth's frame")
+            skip(
+                "reconstruction metrics",
+                "the run did not start from a ground-truth pose and has no ATE "
+                "alignment to bring the mesh into the ground truth's frame",
+            )
             return {}
         T_gt_rec = ate.T_gt_est
     if cull_poses is None or intrinsics is None:
-        log.warning("%s: no ground-truth poses or intrinsics: the reconstruction is compared without culling", run_dir.path)
+        log.warning(
+            "%s: no ground-truth poses or intrinsics: the reconstruction is compared without culling", run_dir.path
+        )
     try:
-        recon = evaluate_mesh_files(run_dir.file(MESH_FILE), options.gt_mesh, T_gt_rec=T_gt_rec, cull_poses=cull_poses,
-                                    intrinsics=intrinsics, n_points=options.recon_points,
-                                    depth_views=options.depth_views)
+        recon = evaluate_mesh_files(
+            run_dir.file(MESH_FILE),
+            options.gt_mesh,
+            T_gt_rec=T_gt_rec,
+            cull_poses=cull_poses,
+            intrinsics=intrinsics,
+            n_points=options.recon_points,
+            depth_views=options.depth_views,
+        )
     except DatasetError as exc:
         skip("reconstruction metrics", str(exc))
         return {}

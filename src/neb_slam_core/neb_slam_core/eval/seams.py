@@ -25,12 +25,23 @@ class SeamSteps:
         def pct(x, q):
             return float(np.percentile(x, q) * 100) if x.size else float("nan")
 
-        return {"seam_pairs": int(self.seam.size), "seam_step_max_cm": pct(self.seam, 100),
-                "seam_step_p99_cm": pct(self.seam, 99), "other_step_p99_cm": pct(self.elsewhere, 99)}
+        return {
+            "seam_pairs": int(self.seam.size),
+            "seam_step_max_cm": pct(self.seam, 100),
+            "seam_step_p99_cm": pct(self.seam, 99),
+            "other_step_p99_cm": pct(self.elsewhere, 99),
+        }
 
 
-def seam_step_errors(rendered_depth: np.ndarray, gt_depth: np.ndarray, T_world_cam: np.ndarray, intrinsics,
-                     block_centres: np.ndarray, edge_m: float, linear_tol_m: float = 0.002) -> SeamSteps:
+def seam_step_errors(
+    rendered_depth: np.ndarray,
+    gt_depth: np.ndarray,
+    T_world_cam: np.ndarray,
+    intrinsics,
+    block_centres: np.ndarray,
+    edge_m: float,
+    linear_tol_m: float = 0.002,
+) -> SeamSteps:
     """Step errors for one view.
 
     Args:

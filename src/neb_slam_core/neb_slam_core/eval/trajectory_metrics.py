@@ -149,9 +149,14 @@ def _span_s(stamps_ns: np.ndarray) -> str:
     return f"{stamps_ns.min() * 1e-9:.3f}..{stamps_ns.max() * 1e-9:.3f} s"
 
 
-def associate_trajectories(est: Trajectory, gt: Trajectory, max_dt_s: float = DEFAULT_MAX_DT_S,
-                           est_source: str | Path | None = None, gt_source: str | Path | None = None,
-                           min_matches: int = MIN_MATCHES) -> TrajectoryPair:
+def associate_trajectories(
+    est: Trajectory,
+    gt: Trajectory,
+    max_dt_s: float = DEFAULT_MAX_DT_S,
+    est_source: str | Path | None = None,
+    gt_source: str | Path | None = None,
+    min_matches: int = MIN_MATCHES,
+) -> TrajectoryPair:
     """Pair each estimated pose with the nearest unused ground-truth pose within ``max_dt_s``.
 
     Estimated poses with no ground truth in the window are dropped. ``est_source`` / ``gt_source``
@@ -233,19 +238,37 @@ def compute_ate(pair: TrajectoryPair, align: bool = True) -> AteResult:
     aligned = T_gt_est @ pair.est_poses
     errors = np.linalg.norm(aligned[:, :3, 3] - p_gt, axis=1)
     rmse, mean, median, max_ = _stats(errors)
-    return AteResult(rmse_m=rmse, mean_m=mean, median_m=median, max_m=max_, errors_m=errors,
-                     stamps_ns=pair.stamps_ns, aligned_poses=aligned, gt_poses=pair.gt_poses,
-                     T_gt_est=T_gt_est, n_matched=len(pair), n_est=pair.n_est, n_gt=pair.n_gt)
+    return AteResult(
+        rmse_m=rmse,
+        mean_m=mean,
+        median_m=median,
+        max_m=max_,
+        errors_m=errors,
+        stamps_ns=pair.stamps_ns,
+        aligned_poses=aligned,
+        gt_poses=pair.gt_poses,
+        T_gt_est=T_gt_est,
+        n_matched=len(pair),
+        n_est=pair.n_est,
+        n_gt=pair.n_gt,
+    )
 
 
-def evaluate_ate(est: Trajectory, gt: Trajectory, max_dt_s: float = DEFAULT_MAX_DT_S, align: bool = True,
-                 est_source: str | Path | None = None, gt_source: str | Path | None = None) -> AteResult:
+def evaluate_ate(
+    est: Trajectory,
+    gt: Trajectory,
+    max_dt_s: float = DEFAULT_MAX_DT_S,
+    align: bool = True,
+    est_source: str | Path | None = None,
+    gt_source: str | Path | None = None,
+) -> AteResult:
     """Associate ``est`` with ``gt`` by stamp, align rigidly, and compute the ATE (see the module docstring)."""
     return compute_ate(associate_trajectories(est, gt, max_dt_s, est_source, gt_source), align=align)
 
 
-def rpe_pairs(stamps_ns: np.ndarray, delta: float, delta_unit: str = "s",
-              tolerance_s: float | None = None) -> np.ndarray:
+def rpe_pairs(
+    stamps_ns: np.ndarray, delta: float, delta_unit: str = "s", tolerance_s: float | None = None
+) -> np.ndarray:
     """Index pairs ``(i, j)``, ``j > i``, a fixed step apart.
 
     ``delta_unit="frames"``: ``j = i + delta``. ``delta_unit="s"``: ``j`` is the pose whose stamp is
@@ -286,8 +309,9 @@ def rpe_pairs(stamps_ns: np.ndarray, delta: float, delta_unit: str = "s",
     return np.stack([i[ok], j[ok]], axis=1).astype(np.int64)
 
 
-def compute_rpe(pair: TrajectoryPair, delta: float = 1.0, delta_unit: str = "s",
-                tolerance_s: float | None = None) -> RpeResult:
+def compute_rpe(
+    pair: TrajectoryPair, delta: float = 1.0, delta_unit: str = "s", tolerance_s: float | None = None
+) -> RpeResult:
     """RPE of associated poses over pairs from :func:`rpe_pairs` (no alignment is needed)."""
     pairs = rpe_pairs(pair.stamps_ns, delta, delta_unit, tolerance_s)
     i, j = pairs[:, 0], pairs[:, 1]
@@ -301,14 +325,31 @@ def compute_rpe(pair: TrajectoryPair, delta: float = 1.0, delta_unit: str = "s",
         r_stats: tuple = _stats(rot)
     else:
         t_stats = r_stats = (None,) * 4
-    return RpeResult(delta=float(delta), delta_unit=delta_unit, pairs=pairs, trans_errors_m=trans,
-                     rot_errors_deg=np.asarray(rot, dtype=np.float64),
-                     trans_rmse_m=t_stats[0], trans_mean_m=t_stats[1], trans_median_m=t_stats[2], trans_max_m=t_stats[3],
-                     rot_rmse_deg=r_stats[0], rot_mean_deg=r_stats[1], rot_median_deg=r_stats[2], rot_max_deg=r_stats[3])
+    return RpeResult(
+        delta=float(delta),
+        delta_unit=delta_unit,
+        pairs=pairs,
+        trans_errors_m=trans,
+        rot_errors_deg=np.asarray(rot, dtype=np.float64),
+        trans_rmse_m=t_stats[0],
+        trans_mean_m=t_stats[1],
+        trans_median_m=t_stats[2],
+        trans_max_m=t_stats[3],
+        rot_rmse_deg=r_stats[0],
+        rot_mean_deg=r_stats[1],
+        rot_median_deg=r_stats[2],
+        rot_max_deg=r_stats[3],
+    )
 
 
-def evaluate_rpe(est: Trajectory, gt: Trajectory, delta: float = 1.0, delta_unit: str = "s",
-                 max_dt_s: float = DEFAULT_MAX_DT_S, est_source: str | Path | None = None,
-                 gt_source: str | Path | None = None) -> RpeResult:
+def evaluate_rpe(
+    est: Trajectory,
+    gt: Trajectory,
+    delta: float = 1.0,
+    delta_unit: str = "s",
+    max_dt_s: float = DEFAULT_MAX_DT_S,
+    est_source: str | Path | None = None,
+    gt_source: str | Path | None = None,
+) -> RpeResult:
     """Associate ``est`` with ``gt`` by stamp and compute the RPE (see :func:`compute_rpe`)."""
     return compute_rpe(associate_trajectories(est, gt, max_dt_s, est_source, gt_source), delta, delta_unit)

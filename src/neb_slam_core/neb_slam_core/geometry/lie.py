@@ -22,8 +22,9 @@ def so3_exp(omega: torch.Tensor) -> torch.Tensor:
     b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2.clamp(min=1e-24))
     x, y, z = omega[..., 0], omega[..., 1], omega[..., 2]
     zero = torch.zeros_like(x)
-    K = torch.stack([torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1),
-                     torch.stack([-y, x, zero], -1)], -2)
+    K = torch.stack(
+        [torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1), torch.stack([-y, x, zero], -1)], -2
+    )
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(K)
     return eye + a * K + b * (K @ K)
 

@@ -39,8 +39,9 @@ def rays_world(T_world_cam: torch.Tensor, dirs_cam: torch.Tensor) -> tuple[torch
     return origins, dirs
 
 
-def backproject_depth(depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray | None = None,
-                      stride: int = 1) -> np.ndarray:
+def backproject_depth(
+    depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray | None = None, stride: int = 1
+) -> np.ndarray:
     """All valid pixels of a depth image (every ``stride``-th row/column) -> ``(K, 3)`` points
     (world frame when ``T_world_cam`` is given, camera frame otherwise), float64."""
     d = depth_m[::stride, ::stride]

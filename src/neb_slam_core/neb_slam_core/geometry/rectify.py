@@ -42,7 +42,9 @@ class Rectifier:
             size = (intr.width, intr.height)
             K, _ = cv2.getOptimalNewCameraMatrix(intr.K, dist, size, 0.0, size)
             mx, my = cv2.initUndistortRectifyMap(intr.K, dist, None, K, size, cv2.CV_32FC1)
-            pinhole = Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), intr.width, intr.height)
+            pinhole = Intrinsics(
+                float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), intr.width, intr.height
+            )
             self._maps[key] = (mx, my, pinhole)
         return self._maps[key]
 

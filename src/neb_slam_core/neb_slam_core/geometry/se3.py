@@ -52,7 +52,7 @@ def so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
     if t < 1e-4:
         a, b = 0.5 - t * t / 24.0, 1.0 / 6.0 - t * t / 120.0
     else:
-        a, b = (1.0 - np.cos(t)) / t ** 2, (t - np.sin(t)) / t ** 3
+        a, b = (1.0 - np.cos(t)) / t**2, (t - np.sin(t)) / t**3
     return np.eye(3) + a * W + b * (W @ W)
 
 
@@ -60,7 +60,11 @@ def interpolate_correction(delta: np.ndarray, pivot: np.ndarray, w) -> np.ndarra
     """The share ``w`` in [0, 1] of the rigid correction ``delta`` (4x4): rotation ``exp(w log R)``
     about ``pivot`` (3,) plus ``w`` times the displacement of ``pivot``. ``w = 1`` gives ``delta``.
     Batched over leading axes: ``delta`` (..., 4, 4), ``pivot`` (..., 3) and ``w`` (...) broadcast."""
-    delta, pivot, w = np.asarray(delta, dtype=np.float64), np.asarray(pivot, dtype=np.float64), np.asarray(w, dtype=np.float64)
+    delta, pivot, w = (
+        np.asarray(delta, dtype=np.float64),
+        np.asarray(pivot, dtype=np.float64),
+        np.asarray(w, dtype=np.float64),
+    )
     shape = np.broadcast_shapes(delta.shape[:-2], pivot.shape[:-1], w.shape)
     delta = np.broadcast_to(delta, shape + (4, 4)).reshape(-1, 4, 4)
     pivot = np.broadcast_to(pivot, shape + (3,)).reshape(-1, 3)

@@ -24,9 +24,9 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -90,7 +90,9 @@ class BagWriteOptions:
         if self.storage not in STORAGES:
             raise ConfigError(f"bag storage must be one of {', '.join(STORAGES)}, got {self.storage!r}")
         if self.depth_encoding not in DEPTH_ENCODINGS:
-            raise ConfigError(f"bag depth encoding must be one of {', '.join(DEPTH_ENCODINGS)}, got {self.depth_encoding!r}")
+            raise ConfigError(
+                f"bag depth encoding must be one of {', '.join(DEPTH_ENCODINGS)}, got {self.depth_encoding!r}"
+            )
         if not self.depth_unit_m > 0:
             raise ConfigError(f"bag depth_unit_m must be > 0, got {self.depth_unit_m}")
 
@@ -147,8 +149,15 @@ def rgb_to_msg(typestore, rgb: np.ndarray, stamp_ns: int, frame_id: str):
     """``(H, W, 3)`` uint8 RGB -> sensor_msgs/Image ``rgb8``."""
     h, w = rgb.shape[:2]
     Image = typestore.types[IMAGE_TYPE]
-    return Image(header=_header(typestore, stamp_ns, frame_id), height=h, width=w, encoding="rgb8",
-                 is_bigendian=0, step=3 * w, data=np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1))
+    return Image(
+        header=_header(typestore, stamp_ns, frame_id),
+        height=h,
+        width=w,
+        encoding="rgb8",
+        is_bigendian=0,
+        step=3 * w,
+        data=np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1),
+    )
 
 
 def quantise_depth(depth_m: np.ndarray, unit_m: float) -> tuple[np.ndarray, float, int]:
@@ -171,8 +180,9 @@ def quantise_depth(depth_m: np.ndarray, unit_m: float) -> tuple[np.ndarray, floa
     return out, max_err, int(too_far.sum())
 
 
-def depth_to_msg(typestore, depth_m: np.ndarray, stamp_ns: int, frame_id: str, encoding: str = "16UC1",
-                 unit_m: float = 0.001):
+def depth_to_msg(
+    typestore, depth_m: np.ndarray, stamp_ns: int, frame_id: str, encoding: str = "16UC1", unit_m: float = 0.001
+):
     """``(H, W)`` float32 metres -> (sensor_msgs/Image, max quantisation error m, pixels out of range).
 
     ``16UC1`` stores ``round(depth / unit_m)``; ``32FC1`` stores metres with NaN where invalid (REP 118).
@@ -188,31 +198,50 @@ def depth_to_msg(typestore, depth_m: np.ndarray, stamp_ns: int, frame_id: str, e
     else:
         raise ValueError(f"depth encoding must be one of {', '.join(DEPTH_ENCODINGS)}, got {encoding!r}")
     Image = typestore.types[IMAGE_TYPE]
-    msg = Image(header=_header(typestore, stamp_ns, frame_id), height=h, width=w, encoding=encoding,
-                is_bigendian=0, step=step, data=np.ascontiguousarray(raw).view(np.uint8).reshape(-1))
+    msg = Image(
+        header=_header(typestore, stamp_ns, frame_id),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=0,
+        step=step,
+        data=np.ascontiguousarray(raw).view(np.uint8).reshape(-1),
+    )
     return msg, err, n_far
 
 
-def camera_info_to_msg(typestore, intr: Intrinsics, stamp_ns: int, frame_id: str,
-                       distortion: Sequence[float] | None = None):
+def camera_info_to_msg(
+    typestore, intr: Intrinsics, stamp_ns: int, frame_id: str, distortion: Sequence[float] | None = None
+):
     """Intrinsics -> sensor_msgs/CameraInfo (``plumb_bob``; D = ``distortion`` or zeros, R = I, P = [K|0])."""
     CameraInfo = typestore.types[CAMERA_INFO_TYPE]
     RegionOfInterest = typestore.types["sensor_msgs/msg/RegionOfInterest"]
     d = np.zeros(5) if distortion is None else np.asarray(distortion, dtype=np.float64).reshape(-1)
     P = np.zeros((3, 4))
     P[:, :3] = intr.K
-    return CameraInfo(header=_header(typestore, stamp_ns, frame_id), height=intr.height, width=intr.width,
-                      distortion_model="plumb_bob", d=d, k=intr.K.reshape(-1), r=np.eye(3).reshape(-1),
-                      p=P.reshape(-1), binning_x=0, binning_y=0,
-                      roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+    return CameraInfo(
+        header=_header(typestore, stamp_ns, frame_id),
+        height=intr.height,
+        width=intr.width,
+        distortion_model="plumb_bob",
+        d=d,
+        k=intr.K.reshape(-1),
+        r=np.eye(3).reshape(-1),
+        p=P.reshape(-1),
+        binning_x=0,
+        binning_y=0,
+        roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )
 
 
 def pose_to_msg(typestore, T_world_cam: np.ndarray, stamp_ns: int, frame_id: str):
     """``(4, 4)`` camera-to-world pose -> geometry_msgs/PoseStamped (quaternion with qw >= 0)."""
     ts = typestore.types
     tx, ty, tz, qx, qy, qz, qw = (float(v) for v in pose_to_tum(T_world_cam))
-    pose = ts["geometry_msgs/msg/Pose"](position=ts["geometry_msgs/msg/Point"](x=tx, y=ty, z=tz),
-                                        orientation=ts["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
+    pose = ts["geometry_msgs/msg/Pose"](
+        position=ts["geometry_msgs/msg/Point"](x=tx, y=ty, z=tz),
+        orientation=ts["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
     return ts[POSE_TYPE](header=_header(typestore, stamp_ns, frame_id), pose=pose)
 
 
@@ -247,8 +276,12 @@ def decode_rgb(msg) -> np.ndarray:
     img = _pixel_rows(msg, c).reshape(int(msg.height), int(msg.width), c)
     if enc == "rgb8":
         return img.copy()
-    code = {"bgr8": cv2.COLOR_BGR2RGB, "rgba8": cv2.COLOR_RGBA2RGB, "bgra8": cv2.COLOR_BGRA2RGB,
-            "mono8": cv2.COLOR_GRAY2RGB}[enc]
+    code = {
+        "bgr8": cv2.COLOR_BGR2RGB,
+        "rgba8": cv2.COLOR_RGBA2RGB,
+        "bgra8": cv2.COLOR_BGRA2RGB,
+        "mono8": cv2.COLOR_GRAY2RGB,
+    }[enc]
     return cv2.cvtColor(np.ascontiguousarray(img if c > 1 else img[..., 0]), code)
 
 
@@ -313,7 +346,9 @@ def _remove_existing(path: Path) -> None:
     """Delete an existing bag at ``path``; refuse anything that does not look like one."""
     if path.is_dir():
         if not (path / "metadata.yaml").is_file() and any(path.iterdir()):
-            raise DatasetError(path, "exists and is not a ROS 2 bag (no metadata.yaml); not deleting it, choose another path")
+            raise DatasetError(
+                path, "exists and is not a ROS 2 bag (no metadata.yaml); not deleting it, choose another path"
+            )
         shutil.rmtree(path)
     elif path.suffix in (".mcap", ".db3", ".bag"):
         path.unlink()
@@ -321,8 +356,13 @@ def _remove_existing(path: Path) -> None:
         raise DatasetError(path, "exists and is not a bag; not deleting it, choose another path")
 
 
-def write_bag(frames: Sequence[RgbdFrame], path: str | Path, options: BagWriteOptions | None = None,
-              max_frames: int | None = None, progress: bool = True) -> BagSummary:
+def write_bag(
+    frames: Sequence[RgbdFrame],
+    path: str | Path,
+    options: BagWriteOptions | None = None,
+    max_frames: int | None = None,
+    progress: bool = True,
+) -> BagSummary:
     """Write ``frames`` (any :class:`~neb_slam_core.datasets.Dataset`) as a ROS 2 bag directory ``path``.
 
     The bag is built beside ``path`` and moved into place when complete, so an interrupted run never
@@ -366,8 +406,9 @@ def write_bag(frames: Sequence[RgbdFrame], path: str | Path, options: BagWriteOp
                 info = camera_info_to_msg(typestore, frame.intrinsics, stamp, cam, frame.extras.get("distortion"))
                 writer.write(conn_info, stamp, ser(info, CAMERA_INFO_TYPE))
                 writer.write(conn_rgb, stamp, ser(rgb_to_msg(typestore, frame.rgb, stamp, cam), IMAGE_TYPE))
-                depth_msg, err, far = depth_to_msg(typestore, frame.depth_m, stamp, cam, opts.depth_encoding,
-                                                   opts.depth_unit_m)
+                depth_msg, err, far = depth_to_msg(
+                    typestore, frame.depth_m, stamp, cam, opts.depth_encoding, opts.depth_unit_m
+                )
                 max_err, n_far = max(max_err, err), n_far + far
                 writer.write(conn_depth, stamp, ser(depth_msg, IMAGE_TYPE))
                 if frame.T_world_cam is not None:
@@ -383,11 +424,25 @@ def write_bag(frames: Sequence[RgbdFrame], path: str | Path, options: BagWriteOp
         shutil.rmtree(staging, ignore_errors=True)
 
     if n_far:
-        log.warning("%s: %d valid depth pixels beyond the 16UC1 range (%.1f m) were written as 0 (invalid)",
-                    path, n_far, np.iinfo(np.uint16).max * opts.depth_unit_m)
-    summary_topics = [TopicSummary(topics.rgb, IMAGE_TYPE, n), TopicSummary(topics.depth, IMAGE_TYPE, n),
-                      TopicSummary(topics.camera_info, CAMERA_INFO_TYPE, n)]
+        log.warning(
+            "%s: %d valid depth pixels beyond the 16UC1 range (%.1f m) were written as 0 (invalid)",
+            path,
+            n_far,
+            np.iinfo(np.uint16).max * opts.depth_unit_m,
+        )
+    summary_topics = [
+        TopicSummary(topics.rgb, IMAGE_TYPE, n),
+        TopicSummary(topics.depth, IMAGE_TYPE, n),
+        TopicSummary(topics.camera_info, CAMERA_INFO_TYPE, n),
+    ]
     if n_poses:
         summary_topics.append(TopicSummary(topics.ground_truth, POSE_TYPE, n_poses))
-    return BagSummary(path=path, n_frames=n, n_poses=n_poses, topics=tuple(summary_topics),
-                      size_bytes=_bag_size(path), depth_max_error_m=max_err, n_depth_out_of_range=n_far)
+    return BagSummary(
+        path=path,
+        n_frames=n,
+        n_poses=n_poses,
+        topics=tuple(summary_topics),
+        size_bytes=_bag_size(path),
+        depth_max_error_m=max_err,
+        n_depth_out_of_range=n_far,
+    )

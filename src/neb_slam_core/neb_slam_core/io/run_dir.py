@@ -35,9 +35,10 @@ import csv
 import io
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -63,8 +64,21 @@ BLOCKS_PLOT_FILE = "blocks.png"
 #: columns of timings.csv: the input frame index, its stamp (integer ns), the engine's per-stage times
 #: (ms), whether it became a keyframe, the id of the block it allocated (empty: none), whether tracking
 #: succeeded, then the allocation ratio tau, the blocks in the map after it and the failure reason.
-TIMINGS_COLUMNS = ("index", "stamp_ns", "track_ms", "allocate_ms", "map_ms", "loop_ms", "total_ms", "keyframe", "new_block",
-                   "tracking_ok", "tau", "n_blocks", "failure_reason")
+TIMINGS_COLUMNS = (
+    "index",
+    "stamp_ns",
+    "track_ms",
+    "allocate_ms",
+    "map_ms",
+    "loop_ms",
+    "total_ms",
+    "keyframe",
+    "new_block",
+    "tracking_ok",
+    "tau",
+    "n_blocks",
+    "failure_reason",
+)
 
 #: how a run ended, as stored in metrics.json ``status``
 STATUSES = ("complete", "interrupted", "crashed")
@@ -124,15 +138,16 @@ class RunDirectory:
         self.path = Path(path)
 
     @classmethod
-    def create(cls, path: str | Path) -> "RunDirectory":
+    def create(cls, path: str | Path) -> RunDirectory:
         """Make a new, empty run folder (parents too); an existing non-empty folder is an error."""
         path = Path(path)
         if path.exists():
             if not path.is_dir():
                 raise DatasetError(path, "output path exists and is not a folder")
             if any(path.iterdir()):
-                raise DatasetError(path, "output folder is not empty (it may hold another run); "
-                                         "choose another --out or remove it")
+                raise DatasetError(
+                    path, "output folder is not empty (it may hold another run); choose another --out or remove it"
+                )
         path.mkdir(parents=True, exist_ok=True)
         return cls(path)
 
@@ -173,9 +188,23 @@ class RunDirectory:
             if r is None:
                 continue
             t = r.timings
-            writer.writerow([f.index, f.stamp_ns, f"{t.track_ms:.3f}", f"{t.allocate_ms:.3f}", f"{t.map_ms:.3f}",
-                             f"{t.loop_ms:.3f}", f"{t.total_ms:.3f}", int(r.is_keyframe), "" if r.new_block_id is None else r.new_block_id,
-                             int(r.tracking_ok), f"{r.tau:.4f}", r.n_blocks, r.failure_reason])
+            writer.writerow(
+                [
+                    f.index,
+                    f.stamp_ns,
+                    f"{t.track_ms:.3f}",
+                    f"{t.allocate_ms:.3f}",
+                    f"{t.map_ms:.3f}",
+                    f"{t.loop_ms:.3f}",
+                    f"{t.total_ms:.3f}",
+                    int(r.is_keyframe),
+                    "" if r.new_block_id is None else r.new_block_id,
+                    int(r.tracking_ok),
+                    f"{r.tau:.4f}",
+                    r.n_blocks,
+                    r.failure_reason,
+                ]
+            )
         return self._write_text(TIMINGS_FILE, buf.getvalue())
 
     def write_loops(self, loops: list[dict]) -> Path:
@@ -184,11 +213,15 @@ class RunDirectory:
     def write_metrics(self, metrics: dict) -> Path:
         return self._write_text(METRICS_FILE, json.dumps(_json_safe(metrics), indent=2, sort_keys=True) + "\n")
 
-    def write_map(self, slam: "Slam", frames: list[FrameLog]) -> Path:
+    def write_map(self, slam: Slam, frames: list[FrameLog]) -> Path:
         from ..scene.persistence import save_map
 
-        return save_map(slam.block_map, self.file(MAP_FILE), extra=map_extra(slam, frames),
-                        block_keyframes=slam.keyframes.block_keyframes())
+        return save_map(
+            slam.block_map,
+            self.file(MAP_FILE),
+            extra=map_extra(slam, frames),
+            block_keyframes=slam.keyframes.block_keyframes(),
+        )
 
     def write_mesh(self, mesh) -> Path:
         """mesh.ply: ``mesh`` (a ``trimesh.Trimesh``) as binary PLY with its vertex colours."""
@@ -207,7 +240,7 @@ def read_timings(path: str | Path) -> list[dict[str, str]]:
         return list(reader)
 
 
-def map_extra(slam: "Slam", frames: list[FrameLog]) -> dict:
+def map_extra(slam: Slam, frames: list[FrameLog]) -> dict:
     """What map.pt stores beside the map (plain tensors and lists, loadable with ``weights_only``).
 
     ``keyframe_poses``: ``(K, 4, 4)`` float64 tensor of the keyframes' current ``T_world_cam``;
@@ -228,7 +261,7 @@ def map_extra(slam: "Slam", frames: list[FrameLog]) -> dict:
     }
 
 
-def loop_log(slam: "Slam", frames: list[FrameLog]) -> list[dict]:
+def loop_log(slam: Slam, frames: list[FrameLog]) -> list[dict]:
     """Every loop the engine detected, in order: :meth:`~neb_slam_core.types.LoopEvent.as_dict` plus the
     input frame index and stamp of the query keyframe (``frame``, ``stamp_ns``) and of its loop
     keyframes (``loop_frames``, ``loop_stamps_ns``)."""

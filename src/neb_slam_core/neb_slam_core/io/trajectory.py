@@ -74,7 +74,9 @@ def read_tum_trajectory(path: str | Path) -> Trajectory:
             continue
         parts = line.replace(",", " ").split()
         if len(parts) != 8:
-            raise DatasetError(path, f"line {lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {len(parts)}")
+            raise DatasetError(
+                path, f"line {lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {len(parts)}"
+            )
         try:
             stamps.append(stamp_s_to_ns(parts[0]))
             rows.append([float(p) for p in parts[1:]])
@@ -86,7 +88,9 @@ def read_tum_trajectory(path: str | Path) -> Trajectory:
     q_norm = np.linalg.norm(rows_a[:, 3:], axis=1)
     bad = np.flatnonzero(~np.isfinite(rows_a).all(axis=1) | (np.abs(q_norm - 1.0) > 1e-2))
     if len(bad):
-        raise DatasetError(path, f"pose {bad[0]} is not finite or its quaternion is not unit length (|q| = {q_norm[bad[0]]:.4f})")
+        raise DatasetError(
+            path, f"pose {bad[0]} is not finite or its quaternion is not unit length (|q| = {q_norm[bad[0]]:.4f})"
+        )
     rows_a[:, 3:] /= q_norm[:, None]
     return Trajectory(np.asarray(stamps, np.int64), pose_from_tum(rows_a))
 
@@ -108,6 +112,9 @@ def check_rigid_pose(T: np.ndarray, source: str | Path, what: str) -> np.ndarray
     if T.shape != (4, 4):
         raise DatasetError(source, f"{what}: expected a 4x4 matrix, got shape {T.shape}")
     if not is_rigid(T):
-        raise DatasetError(source, f"{what}: not a rigid transform (rotation part is not orthonormal with det 1, "
-                                   f"or last row is not 0 0 0 1):\n{np.array2string(T, precision=4)}")
+        raise DatasetError(
+            source,
+            f"{what}: not a rigid transform (rotation part is not orthonormal with det 1, "
+            f"or last row is not 0 0 0 1):\n{np.array2string(T, precision=4)}",
+        )
     return T

@@ -7,15 +7,46 @@ The shipped vocabulary lives in ``data/`` and is rebuilt by ``neb-slam vocab tra
 """
 
 from .database import KeyframeDatabase, QueryResult
-from .detector import (GeometricCheck, KeyframeFeatures, LoopCandidate, LoopDetection, LoopDetector, LoopQuery,
-                       match_descriptors)
+from .detector import (
+    GeometricCheck,
+    KeyframeFeatures,
+    LoopCandidate,
+    LoopDetection,
+    LoopDetector,
+    LoopQuery,
+    match_descriptors,
+)
 from .features import OrbExtractor, OrbFeatures, OrbParams
-from .vocabulary import (BowVector, Vocabulary, hamming_distance, l1_score, load_vocabulary, majority_centre,
-                         shipped_vocabulary_path, train_vocabulary)
+from .vocabulary import (
+    BowVector,
+    Vocabulary,
+    hamming_distance,
+    l1_score,
+    load_vocabulary,
+    majority_centre,
+    shipped_vocabulary_path,
+    train_vocabulary,
+)
 
 __all__ = [
-    "BowVector", "GeometricCheck", "KeyframeDatabase", "KeyframeFeatures", "LoopCandidate", "LoopDetection",
-    "LoopDetector", "LoopQuery", "OrbExtractor", "OrbFeatures", "OrbParams", "QueryResult", "Vocabulary",
-    "hamming_distance", "l1_score", "load_vocabulary", "majority_centre", "match_descriptors",
-    "shipped_vocabulary_path", "train_vocabulary",
+    "BowVector",
+    "GeometricCheck",
+    "KeyframeDatabase",
+    "KeyframeFeatures",
+    "LoopCandidate",
+    "LoopDetection",
+    "LoopDetector",
+    "LoopQuery",
+    "OrbExtractor",
+    "OrbFeatures",
+    "OrbParams",
+    "QueryResult",
+    "Vocabulary",
+    "hamming_distance",
+    "l1_score",
+    "load_vocabulary",
+    "majority_centre",
+    "match_descriptors",
+    "shipped_vocabulary_path",
+    "train_vocabulary",
 ]

@@ -26,8 +26,7 @@ import numpy as np
 from ..config import LoopConfig
 from ..geometry.se3 import invert
 from ..types import LoopEvent, RgbdFrame
-from .correction import (DepthView, correction_size, fit_loop_pose, propagate_correction, sample_pixels,
-                         strided_view)
+from .correction import DepthView, correction_size, fit_loop_pose, propagate_correction, sample_pixels, strided_view
 from .detector import LoopDetector
 from .vocabulary import Vocabulary
 
@@ -51,7 +50,9 @@ class LoopCloser:
         self.detector.add_keyframe(keyframe_id, frame.stamp_ns, frame.rgb, frame.depth_m, frame.intrinsics)
         self._views[int(keyframe_id)] = strided_view(np.eye(4), frame.depth_m, frame.intrinsics, self.cfg.depth_stride)
 
-    def close(self, keyframe_id: int, poses: np.ndarray, frame: RgbdFrame) -> tuple[LoopEvent | None, np.ndarray | None]:
+    def close(
+        self, keyframe_id: int, poses: np.ndarray, frame: RgbdFrame
+    ) -> tuple[LoopEvent | None, np.ndarray | None]:
         """Query for keyframe ``keyframe_id`` (already added; ``frame`` is it) with the current keyframe
         poses ``(K, 4, 4)``; returns the loop event (None: no loop) and, when applied, the corrected poses."""
         cfg = self.cfg
@@ -77,11 +78,16 @@ class LoopCloser:
         if not fit.rms_px <= cfg.max_fit_rms_px:
             return event(False, f"fit RMS {fit.rms_px:.2f} px above {cfg.max_fit_rms_px:g} px"), None
         if share < cfg.min_valid_share:
-            return event(False, f"only {100 * share:.0f}% of pixels seen in the loop keyframes "
-                                f"(< {100 * cfg.min_valid_share:.0f}%)"), None
+            return event(
+                False,
+                f"only {100 * share:.0f}% of pixels seen in the loop keyframes (< {100 * cfg.min_valid_share:.0f}%)",
+            ), None
         if cm < cfg.min_correction_cm and deg < cfg.min_correction_deg:
-            return event(False, f"correction {cm:.2f} cm / {deg:.2f} deg below {cfg.min_correction_cm:g} cm / "
-                                f"{cfg.min_correction_deg:g} deg: nothing to correct"), None
+            return event(
+                False,
+                f"correction {cm:.2f} cm / {deg:.2f} deg below {cfg.min_correction_cm:g} cm / "
+                f"{cfg.min_correction_deg:g} deg: nothing to correct",
+            ), None
         corrected = propagate_correction(poses, min(ids), keyframe_id, fit.T_world_cam, self.registrations)
         return event(True), corrected
 
@@ -92,7 +98,7 @@ class LoopCloser:
         cfg = self.cfg
         order = list(self._views)
         position = order.index(int(keyframe_id))
-        earlier = order[max(0, position - cfg.register_neighbours):position]
+        earlier = order[max(0, position - cfg.register_neighbours) : position]
         if not earlier:
             return
         pixels, depths = sample_pixels(frame.depth_m, cfg.correction_pixels, self.rng)

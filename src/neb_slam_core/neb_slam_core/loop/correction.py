@@ -44,8 +44,7 @@ registered against the keyframes just before it (the same objective as the loop 
 :class:`~neb_slam_core.loop.closer.LoopCloser`), and those relative poses join the graph as edges beside
 the tracked ones, weighted the same way. Where tracking drifted, the two disagree and the loop's
 correction goes there; where they agree, the chain is stiffer. ``benchmarks/pose_graph_edges.py``
-measures the effect on runs without loop closure (README, loop closure); robust losses on the edges
-did no better there.
+measures the effect on runs without loop closure.
 """
 
 from __future__ import annotations
@@ -174,9 +173,15 @@ def _add_cross(d: np.ndarray, a: np.ndarray, sign: float) -> None:
     d[2, :, 1] += sign * a[:, 0]
 
 
-def reprojection_residuals(T_world_cur: np.ndarray, pixels: np.ndarray, depths: np.ndarray, intrinsics: Intrinsics,
-                           views: list[DepthView], _lookups: list[_Interpolator] | None = None,
-                           jacobian: bool = False):
+def reprojection_residuals(
+    T_world_cur: np.ndarray,
+    pixels: np.ndarray,
+    depths: np.ndarray,
+    intrinsics: Intrinsics,
+    views: list[DepthView],
+    _lookups: list[_Interpolator] | None = None,
+    jacobian: bool = False,
+):
     """The loop residuals for every view ``r`` and pixel ``j``: the paper's ``u'_rj - u_j`` and the depth
     disagreement in pixels (see the module docstring), at the current keyframe's pose ``T_world_cur``.
 
@@ -219,9 +224,13 @@ def reprojection_residuals(T_world_cur: np.ndarray, pixels: np.ndarray, depths: 
             d_in_r = _rotate(R_r.T, d_world)
             du_r, dv_r = _projection_slopes(d_in_r, in_r, k_r)
             d_depth = slope[0][:, 0:1] * du_r + slope[0][:, 1:2] * dv_r  # (N, 6)
-            d_surface = np.stack([(d_r[:, None] * du_r + (u_r[:, 0] - k_r.cx)[:, None] * d_depth) / k_r.fx,
-                                  (d_r[:, None] * dv_r + (u_r[:, 1] - k_r.cy)[:, None] * d_depth) / k_r.fy,
-                                  d_depth])
+            d_surface = np.stack(
+                [
+                    (d_r[:, None] * du_r + (u_r[:, 0] - k_r.cx)[:, None] * d_depth) / k_r.fx,
+                    (d_r[:, None] * dv_r + (u_r[:, 1] - k_r.cy)[:, None] * d_depth) / k_r.fy,
+                    d_depth,
+                ]
+            )
             d_back_w = _rotate(R_r, d_surface)  # the surface point in the world, then seen from the
             _add_cross(d_back_w, surface_w - t, 1.0)  # current camera turning: (W - t) x phi
             d_back_w[0, :, 3] -= 1.0  # and moving
@@ -233,24 +242,33 @@ def reprojection_residuals(T_world_cur: np.ndarray, pixels: np.ndarray, depths: 
     return (res, valid, jac) if jacobian else (res, valid)
 
 
-def fit_loop_pose(T_world_init: np.ndarray, pixels: np.ndarray, depths: np.ndarray, intrinsics: Intrinsics,
-                  views: list[DepthView], loss_scale_px: float = 1.0, min_scale_px: float = 0.05, rounds: int = 3,
-                  max_evaluations: int = 100, ftol: float = 1e-6, xtol: float = 1e-4) -> PoseFit:
+def fit_loop_pose(
+    T_world_init: np.ndarray,
+    pixels: np.ndarray,
+    depths: np.ndarray,
+    intrinsics: Intrinsics,
+    views: list[DepthView],
+    loss_scale_px: float = 1.0,
+    min_scale_px: float = 0.05,
+    rounds: int = 3,
+    max_evaluations: int = 100,
+    ftol: float = 1e-6,
+    xtol: float = 1e-4,
+) -> PoseFit:
     """Minimise the loop objective over the current keyframe's pose, from ``T_world_init`` (the
     geometric check's estimate), for ``(N, 2)`` pixels with ``(N,)`` depths.
 
     Robust, coarse to fine: a Cauchy loss (its pull vanishes for large residuals: occluded pixels and
-    depth edges, a few percent of the pairs, do not bias the pose as a soft-L1 one's bounded pull does:
-    1.6 cm off on the synthetic loop) of scale ``loss_scale_px`` first, then ``rounds - 1`` times of
+    depth edges, a few percent of the pairs, do not bias the pose, as a bounded pull such as soft-L1's
+    would) of scale ``loss_scale_px`` first, then ``rounds - 1`` times of
     scale twice the residuals' robust spread (1.4826 x median absolute residual) at the last pose,
     clipped to [``min_scale_px``, ``loss_scale_px``]: exact synthetic depth ends at the floor, real
     depth at its own noise level.
 
     Each round stops when a step changes the robust cost by less than ``ftol`` (relative) or moves the
     6-vector by less than ``xtol`` of its length (about a micrometre for a centimetre correction).
-    scipy's defaults (1e-8 both) ask for nanometres: over the TUM keyframes' 145 fits they took twice the
-    evaluations for poses that differ from these by 0.014 mm (median; 90 % within 0.64 mm), where a fit is
-    accepted up to 2 px RMS (``loop.max_fit_rms_px``).
+    scipy's defaults (1e-8 both) ask for nanometres, about twice the evaluations for poses that differ by
+    hundredths of a millimetre, where a fit is accepted up to 2 px RMS (``loop.max_fit_rms_px``).
 
     The Jacobian is analytic (:func:`reprojection_residuals` with ``jacobian``, chained with the rotation
     vector's :func:`~neb_slam_core.geometry.se3.so3_left_jacobian`): one pass over the pixels where forward
@@ -285,8 +303,17 @@ def fit_loop_pose(T_world_init: np.ndarray, pixels: np.ndarray, depths: np.ndarr
             _, n, r = rms(pose(x))
             spread = 1.4826 * float(np.median(np.abs(r))) if n else loss_scale_px
             scale = float(np.clip(2.0 * spread, min_scale_px, loss_scale_px))
-        x = least_squares(residuals, x, jac=jacobian, loss="cauchy", f_scale=scale, max_nfev=max_evaluations,
-                          x_scale=np.full(6, 1e-2), ftol=ftol, xtol=xtol).x
+        x = least_squares(
+            residuals,
+            x,
+            jac=jacobian,
+            loss="cauchy",
+            f_scale=scale,
+            max_nfev=max_evaluations,
+            x_scale=np.full(6, 1e-2),
+            ftol=ftol,
+            xtol=xtol,
+        ).x
     T = pose(x)
     rms_end, n_valid, _ = rms(T)
     return PoseFit(T, rms_start, rms_end, n_valid, len(pixels))
@@ -302,10 +329,10 @@ def _shared_correction(poses: np.ndarray, start_id: int, end_id: int, T_end_new:
     """The correction spread by path length, rotation about the current keyframe: the pose graph's start."""
     delta = T_end_new @ invert(poses[end_id])
     pivot = poses[end_id][:3, 3].copy()
-    steps = np.linalg.norm(np.diff(poses[start_id:end_id + 1, :3, 3], axis=0), axis=1)
+    steps = np.linalg.norm(np.diff(poses[start_id : end_id + 1, :3, 3], axis=0), axis=1)
     travelled = np.concatenate([[0.0], np.cumsum(steps)])
     shares = travelled / travelled[-1] if travelled[-1] > 0 else np.linspace(0.0, 1.0, len(travelled))
-    out = poses[start_id:end_id + 1].copy()
+    out = poses[start_id : end_id + 1].copy()
     for k, w in enumerate(shares[1:], start=1):
         out[k] = interpolate_correction(delta, pivot, float(w)) @ out[k]
     return out
@@ -323,8 +350,13 @@ def _edge_weight(Z: np.ndarray) -> np.ndarray:
     return 1.0 / np.sqrt(np.linalg.norm(Z[:, :3, 3], axis=1) + _MIN_EDGE_M)
 
 
-def propagate_correction(poses: np.ndarray, start_id: int, end_id: int, T_end_new: np.ndarray,
-                         registrations: Mapping[tuple[int, int], np.ndarray] | None = None) -> np.ndarray:
+def propagate_correction(
+    poses: np.ndarray,
+    start_id: int,
+    end_id: int,
+    T_end_new: np.ndarray,
+    registrations: Mapping[tuple[int, int], np.ndarray] | None = None,
+) -> np.ndarray:
     """Keyframe poses ``(K, 4, 4)`` after moving keyframe ``end_id`` to ``T_end_new``, the loop's older
     end ``start_id`` and every keyframe before it held (the pose graph of the module docstring).
 
@@ -337,8 +369,8 @@ def propagate_correction(poses: np.ndarray, start_id: int, end_id: int, T_end_ne
     T_end_new = np.array(T_end_new, dtype=np.float64)
     if not 0 <= start_id < end_id < len(poses):
         raise ValueError(f"propagate_correction: need 0 <= start_id ({start_id}) < end_id ({end_id}) < {len(poses)}")
-    chain = poses[start_id:end_id + 1]
-    n = end_id - start_id                      # nodes 0 (held) and n (the fitted pose) are fixed
+    chain = poses[start_id : end_id + 1]
+    n = end_id - start_id  # nodes 0 (held) and n (the fitted pose) are fixed
     # edges: the tracked consecutive ones, Z_i = inv(T_i) T_i+1, then the registrations inside the chain
     first, second = list(range(n)), list(range(1, n + 1))
     measured = [np.einsum("nij,njk->nik", np.linalg.inv(chain[:-1]), chain[1:])]
@@ -372,14 +404,13 @@ def propagate_correction(poses: np.ndarray, start_id: int, end_id: int, T_end_ne
         for e, ends in enumerate(zip(first, second)):
             for k in ends:
                 if 1 <= k <= n - 1:
-                    sparsity[6 * e:6 * e + 6, 6 * (k - 1):6 * k] = 1
+                    sparsity[6 * e : 6 * e + 6, 6 * (k - 1) : 6 * k] = 1
         R0 = start[1:-1, :3, :3] @ np.transpose(chain[1:-1, :3, :3], (0, 2, 1))
         x0 = np.concatenate([Rotation.from_matrix(R0).as_rotvec(), start[1:-1, :3, 3] - chain[1:-1, :3, 3]], axis=1)
-        x = least_squares(residuals, x0.ravel(), jac_sparsity=sparsity, method="trf", x_scale=1e-2,
-                          max_nfev=100).x
+        x = least_squares(residuals, x0.ravel(), jac_sparsity=sparsity, method="trf", x_scale=1e-2, max_nfev=100).x
     out = poses.copy()
-    out[start_id:end_id + 1] = nodes(x)
-    out[end_id + 1:] = T_end_new @ invert(poses[end_id]) @ poses[end_id + 1:]
+    out[start_id : end_id + 1] = nodes(x)
+    out[end_id + 1 :] = T_end_new @ invert(poses[end_id]) @ poses[end_id + 1 :]
     return out
 
 
@@ -400,6 +431,6 @@ def merge_correction(poses: np.ndarray, first_id: int, corrected: np.ndarray) ->
         raise ValueError(f"merge_correction: keyframes {first_id}..{end} are not after the first of {len(poses)}")
     delta = corrected[-1] @ invert(poses[end])
     out = poses.copy()
-    out[first_id:end + 1] = corrected
-    out[end + 1:] = delta @ poses[end + 1:]
+    out[first_id : end + 1] = corrected
+    out[end + 1 :] = delta @ poses[end + 1 :]
     return out

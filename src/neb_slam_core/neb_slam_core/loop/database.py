@@ -44,11 +44,11 @@ class KeyframeDatabase:
 
     def __init__(self, n_words: int):
         self.n_words = int(n_words)
-        self._post_kf: list[np.ndarray | None] = [None] * self.n_words   # dense keyframe index per entry
-        self._post_w: list[np.ndarray | None] = [None] * self.n_words    # float64 weight per entry
-        self._post_n = np.zeros(self.n_words, dtype=np.int64)           # entries in use per word
-        self._ids: list[int] = []                                       # dense index -> caller id
-        self._index: dict[int, int] = {}                                # caller id -> dense index
+        self._post_kf: list[np.ndarray | None] = [None] * self.n_words  # dense keyframe index per entry
+        self._post_w: list[np.ndarray | None] = [None] * self.n_words  # float64 weight per entry
+        self._post_n = np.zeros(self.n_words, dtype=np.int64)  # entries in use per word
+        self._ids: list[int] = []  # dense index -> caller id
+        self._index: dict[int, int] = {}  # caller id -> dense index
         self._vectors: list[BowVector] = []
 
     def __len__(self) -> int:
@@ -93,8 +93,9 @@ class KeyframeDatabase:
             self._post_w[w][n] = weight
             self._post_n[w] = n + 1
 
-    def query(self, bow: BowVector, max_results: int | None = None,
-              exclude_ids: np.ndarray | list[int] | None = None) -> QueryResult:
+    def query(
+        self, bow: BowVector, max_results: int | None = None, exclude_ids: np.ndarray | list[int] | None = None
+    ) -> QueryResult:
         """Keyframes sharing at least one word with ``bow``, by decreasing L1 score.
 
         Args:

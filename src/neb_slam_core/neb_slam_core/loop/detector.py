@@ -171,7 +171,9 @@ def backproject(keypoints_px: np.ndarray, depth_m: np.ndarray, intrinsics: Intri
     return np.stack([x, y, z], axis=1)
 
 
-def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float, max_distance: int) -> tuple[np.ndarray, np.ndarray]:
+def match_descriptors(
+    query: np.ndarray, train: np.ndarray, ratio: float, max_distance: int
+) -> tuple[np.ndarray, np.ndarray]:
     """ORB matches from ``(Nq, 32)`` query to ``(Nt, 32)`` train descriptors.
 
     Each query descriptor's nearest train descriptor is kept when its Hamming distance is at most
@@ -184,21 +186,27 @@ def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float, max_di
     none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
     if len(query) == 0 or len(train) < 2:
         return none
-    dist, idx = cv2.batchDistance(np.ascontiguousarray(query), np.ascontiguousarray(train), cv2.CV_32S,
-                                  normType=cv2.NORM_HAMMING, K=2)
+    dist, idx = cv2.batchDistance(
+        np.ascontiguousarray(query), np.ascontiguousarray(train), cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2
+    )
     d1, d2 = dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
     keep = np.flatnonzero((d1 <= max_distance) & (d1 < ratio * d2))
     if keep.size == 0:
         return none
     t = idx[keep, 0].astype(np.int64)
-    order = np.lexsort((keep, d1[keep]))             # closest first, then lowest query index
+    order = np.lexsort((keep, d1[keep]))  # closest first, then lowest query index
     _, first = np.unique(t[order], return_index=True)
     chosen = np.sort(order[first])
     return keep[chosen].astype(np.int64), t[chosen]
 
 
-def pose_residuals(T_query_cand: np.ndarray, points_cand: np.ndarray, pixels_query: np.ndarray,
-                   points_query: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+def pose_residuals(
+    T_query_cand: np.ndarray,
+    points_cand: np.ndarray,
+    pixels_query: np.ndarray,
+    points_query: np.ndarray,
+    intrinsics: Intrinsics,
+) -> tuple[np.ndarray, np.ndarray]:
     """Per match: reprojection error (px) of the candidate's point ``(N, 3)`` in the query, and its 3D
     distance (m) to the query's point ``(N, 3)`` (meaningless where the query has no depth); points
     behind the query camera get an infinite reprojection error."""
@@ -206,13 +214,21 @@ def pose_residuals(T_query_cand: np.ndarray, points_cand: np.ndarray, pixels_que
     in_front = moved[:, 2] > 1e-6
     z = np.where(in_front, moved[:, 2], 1.0)
     k = intrinsics
-    reproj = np.hypot(k.fx * moved[:, 0] / z + k.cx - pixels_query[:, 0], k.fy * moved[:, 1] / z + k.cy - pixels_query[:, 1])
+    reproj = np.hypot(
+        k.fx * moved[:, 0] / z + k.cx - pixels_query[:, 0], k.fy * moved[:, 1] / z + k.cy - pixels_query[:, 1]
+    )
     return np.where(in_front, reproj, np.inf), np.linalg.norm(moved - points_query, axis=1)
 
 
-def refine_pose(T_query_cand: np.ndarray, points_cand: np.ndarray, pixels_query: np.ndarray,
-                points_query: np.ndarray, tolerance_m: np.ndarray, intrinsics: Intrinsics,
-                pixel_scale: float) -> np.ndarray:
+def refine_pose(
+    T_query_cand: np.ndarray,
+    points_cand: np.ndarray,
+    pixels_query: np.ndarray,
+    points_query: np.ndarray,
+    tolerance_m: np.ndarray,
+    intrinsics: Intrinsics,
+    pixel_scale: float,
+) -> np.ndarray:
     """``T_query_cand`` refined by robust least squares (soft-L1) over ``N`` matches: reprojection
     residuals in units of ``pixel_scale`` px, and, where the query has depth (``points_query[:, 2] > 0``),
     3D residuals in units of ``tolerance_m`` ``(N,)``. Returns the refined ``(4, 4)`` pose."""
@@ -250,10 +266,11 @@ class LoopDetector:
     def __init__(self, cfg: LoopConfig, vocabulary: Vocabulary | None = None):
         self.cfg = cfg
         self.vocabulary = vocabulary if vocabulary is not None else Vocabulary.load(cfg.vocabulary)
-        self.extractor = OrbExtractor(OrbParams(cfg.n_features, cfg.orb_scale_factor, cfg.orb_levels,
-                                                cfg.fast_threshold, cfg.min_image_width_px))
+        self.extractor = OrbExtractor(
+            OrbParams(cfg.n_features, cfg.orb_scale_factor, cfg.orb_levels, cfg.fast_threshold, cfg.min_image_width_px)
+        )
         self.database = KeyframeDatabase(self.vocabulary.n_words)
-        self._keyframes: list[KeyframeFeatures] = []   # insertion order = temporal order
+        self._keyframes: list[KeyframeFeatures] = []  # insertion order = temporal order
         self._position: dict[int, int] = {}
 
     def __len__(self) -> int:
@@ -262,13 +279,19 @@ class LoopDetector:
     def keyframe(self, keyframe_id: int) -> KeyframeFeatures:
         return self._keyframes[self._position[int(keyframe_id)]]
 
-    def describe(self, keyframe_id: int, stamp_ns: int, rgb: np.ndarray, depth_m: np.ndarray,
-                 intrinsics: Intrinsics) -> KeyframeFeatures:
+    def describe(
+        self, keyframe_id: int, stamp_ns: int, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics
+    ) -> KeyframeFeatures:
         """ORB features, keypoint depths and BoW vector of one frame (nothing is stored)."""
         feats = self.extractor(rgb)
-        return KeyframeFeatures(int(keyframe_id), int(stamp_ns), feats,
-                                keypoint_depths(depth_m, feats.keypoints_px), intrinsics,
-                                self.vocabulary.transform(feats.descriptors))
+        return KeyframeFeatures(
+            int(keyframe_id),
+            int(stamp_ns),
+            feats,
+            keypoint_depths(depth_m, feats.keypoints_px),
+            intrinsics,
+            self.vocabulary.transform(feats.descriptors),
+        )
 
     def add(self, keyframe: KeyframeFeatures) -> None:
         """Append a described keyframe (keyframes are added in temporal order)."""
@@ -278,8 +301,9 @@ class LoopDetector:
         self._keyframes.append(keyframe)
         self.database.add(keyframe.keyframe_id, keyframe.bow)
 
-    def add_keyframe(self, keyframe_id: int, stamp_ns: int, rgb: np.ndarray, depth_m: np.ndarray,
-                     intrinsics: Intrinsics) -> KeyframeFeatures:
+    def add_keyframe(
+        self, keyframe_id: int, stamp_ns: int, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics
+    ) -> KeyframeFeatures:
         """:meth:`describe` then :meth:`add`; returns the stored keyframe."""
         kf = self.describe(keyframe_id, stamp_ns, rgb, depth_m, intrinsics)
         self.add(kf)
@@ -290,8 +314,11 @@ class LoopDetector:
         p = self._position[int(keyframe_id)]
         n = self.cfg.neighbours
         q = self._keyframes[p].bow
-        scores = [l1_score(q, self._keyframes[i].bow)
-                  for i in range(max(0, p - n), min(len(self._keyframes), p + n + 1)) if i != p]
+        scores = [
+            l1_score(q, self._keyframes[i].bow)
+            for i in range(max(0, p - n), min(len(self._keyframes), p + n + 1))
+            if i != p
+        ]
         return float(min(scores)) if scores else float("nan")
 
     def query(self, keyframe_id: int) -> LoopQuery:
@@ -315,8 +342,9 @@ class LoopDetector:
             check = self.verify(q, cand)
             checks.append((cand_id, check))
             if check.accepted:
-                verified.append(LoopCandidate(cand_id, cand.stamp_ns, score, check.T_cand_query,
-                                              check.n_matches, check.n_inliers))
+                verified.append(
+                    LoopCandidate(cand_id, cand.stamp_ns, score, check.T_cand_query, check.n_matches, check.n_inliers)
+                )
         detection = None
         if verified:
             chosen = [verified[0]]  # r1: highest score (the list is best first)
@@ -334,8 +362,9 @@ class LoopDetector:
         with_depth = np.flatnonzero(cand.keypoint_depth_m > 0)
         if len(with_depth) < max(4, cfg.min_inliers):
             return GeometricCheck(False, None, 0, 0, f"{len(with_depth)} candidate keypoints with depth")
-        qi, ti = match_descriptors(query.features.descriptors, cand.features.descriptors[with_depth],
-                                   cfg.match_ratio, cfg.max_match_distance)
+        qi, ti = match_descriptors(
+            query.features.descriptors, cand.features.descriptors[with_depth], cfg.match_ratio, cfg.max_match_distance
+        )
         n_matches = len(qi)
         if n_matches < max(4, cfg.min_inliers):
             return GeometricCheck(False, None, n_matches, 0, f"{n_matches} matches")
@@ -343,8 +372,15 @@ class LoopDetector:
         points_cand = backproject(cand.features.keypoints_px[ci], cand.keypoint_depth_m[ci], cand.intrinsics)
         pixels_query = query.features.keypoints_px[qi].astype(np.float64)
         ok, rvec, tvec, pnp_inliers = cv2.solvePnPRansac(
-            points_cand, pixels_query, query.intrinsics.K, None, iterationsCount=cfg.ransac_iterations,
-            reprojectionError=cfg.reprojection_error_px, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+            points_cand,
+            pixels_query,
+            query.intrinsics.K,
+            None,
+            iterationsCount=cfg.ransac_iterations,
+            reprojectionError=cfg.reprojection_error_px,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
         if not ok or pnp_inliers is None or len(pnp_inliers) < 3:
             return GeometricCheck(False, None, n_matches, 0, "PnP RANSAC found no pose")
         T_query_cand = make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))  # x_query = R x_cand + t
@@ -360,8 +396,15 @@ class LoopDetector:
         points_query = backproject(pixels_query, depth_q, query.intrinsics)
         tolerance_m = cfg.max_point_error_m * np.maximum(1.0, depth_q)
         start = pnp_inliers.reshape(-1)
-        T_query_cand = refine_pose(T_query_cand, points_cand[start], pixels_query[start], points_query[start],
-                                   tolerance_m[start], query.intrinsics, cfg.reprojection_error_px)
+        T_query_cand = refine_pose(
+            T_query_cand,
+            points_cand[start],
+            pixels_query[start],
+            points_query[start],
+            tolerance_m[start],
+            query.intrinsics,
+            cfg.reprojection_error_px,
+        )
         reproj, dist3 = pose_residuals(T_query_cand, points_cand, pixels_query, points_query, query.intrinsics)
         # an inlier reprojects within the threshold and agrees with the query's depth: without that, a
         # keypoint without depth in the query would count on its pixel alone
@@ -370,6 +413,11 @@ class LoopDetector:
         n_checkable = int(np.count_nonzero(depth_q > 0))  # matches with depth on both sides
         T_cand_query = invert(T_query_cand)
         if n_inliers < cfg.min_inliers or n_inliers < cfg.min_inlier_ratio * n_checkable:
-            return GeometricCheck(False, T_cand_query, n_matches, n_inliers,
-                                  f"{n_inliers} inliers of {n_checkable} matches with depth in both frames")
+            return GeometricCheck(
+                False,
+                T_cand_query,
+                n_matches,
+                n_inliers,
+                f"{n_inliers} inliers of {n_checkable} matches with depth in both frames",
+            )
         return GeometricCheck(True, T_cand_query, n_matches, n_inliers)

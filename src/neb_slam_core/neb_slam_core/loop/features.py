@@ -63,9 +63,10 @@ class OrbFeatures:
         return len(self.keypoints_px)
 
     @staticmethod
-    def empty(image_size: tuple[int, int]) -> "OrbFeatures":
-        return OrbFeatures(np.zeros((0, 2), np.float32), np.zeros((0, DESCRIPTOR_BYTES), np.uint8),
-                           np.zeros(0, np.int16), image_size)
+    def empty(image_size: tuple[int, int]) -> OrbFeatures:
+        return OrbFeatures(
+            np.zeros((0, 2), np.float32), np.zeros((0, DESCRIPTOR_BYTES), np.uint8), np.zeros(0, np.int16), image_size
+        )
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:
@@ -85,8 +86,12 @@ class OrbExtractor:
 
     def __init__(self, params: OrbParams = OrbParams()):
         self.params = params
-        self._orb = cv2.ORB_create(nfeatures=params.n_features, scaleFactor=params.scale_factor,
-                                   nlevels=params.n_levels, fastThreshold=params.fast_threshold)
+        self._orb = cv2.ORB_create(
+            nfeatures=params.n_features,
+            scaleFactor=params.scale_factor,
+            nlevels=params.n_levels,
+            fastThreshold=params.fast_threshold,
+        )
 
     def upsample_factor(self, width_px: int) -> int:
         """The integer factor an image ``width_px`` wide is upsampled by before detection (1 = none)."""

@@ -33,9 +33,9 @@ from __future__ import annotations
 import importlib.resources
 import logging
 from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -101,9 +101,9 @@ def _nearest(descriptors_u64: np.ndarray, centres_u64: np.ndarray) -> tuple[np.n
     label = np.empty(n, dtype=np.int64)
     dist = np.empty(n, dtype=np.int32)
     for s in range(0, n, _CHUNK_ROWS):
-        d = _popcount_sum(np.bitwise_xor(descriptors_u64[s:s + _CHUNK_ROWS, None, :], centres_u64[None, :, :]))
-        label[s:s + _CHUNK_ROWS] = np.argmin(d, axis=1)
-        dist[s:s + _CHUNK_ROWS] = d[np.arange(len(d)), label[s:s + _CHUNK_ROWS]]
+        d = _popcount_sum(np.bitwise_xor(descriptors_u64[s : s + _CHUNK_ROWS, None, :], centres_u64[None, :, :]))
+        label[s : s + _CHUNK_ROWS] = np.argmin(d, axis=1)
+        dist[s : s + _CHUNK_ROWS] = d[np.arange(len(d)), label[s : s + _CHUNK_ROWS]]
     return label, dist
 
 
@@ -126,7 +126,7 @@ class BowVector:
         return len(self.word_ids)
 
     @staticmethod
-    def empty() -> "BowVector":
+    def empty() -> BowVector:
         return BowVector(np.zeros(0, np.int32), np.zeros(0, np.float64))
 
     def dense(self, n_words: int) -> np.ndarray:
@@ -200,8 +200,8 @@ class Vocabulary:
         node = np.zeros(len(d), dtype=np.int64)
         centres = _as_u64(self.centres)
         for _ in range(self.depth):
-            kids = self.children[node]                   # (N, k), -1 padded
-            active = np.flatnonzero(kids[:, 0] >= 0)     # children are packed first, so col 0 tells
+            kids = self.children[node]  # (N, k), -1 padded
+            active = np.flatnonzero(kids[:, 0] >= 0)  # children are packed first, so col 0 tells
             if active.size == 0:
                 break
             kids = kids[active]
@@ -236,17 +236,24 @@ class Vocabulary:
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(path, "wb") as f:  # a file object, so numpy does not append its own ".npz"
             np.savez_compressed(
-                f, format=np.array(FORMAT_NAME), format_version=np.array(FORMAT_VERSION, np.int32),
-                branching=np.array(self.branching, np.int32), depth=np.array(self.depth, np.int32),
-                centres=self.centres.astype(np.uint8), children=self.children.astype(np.int32),
-                node_word=self.node_word.astype(np.int32), idf=self.idf.astype(np.float32),
+                f,
+                format=np.array(FORMAT_NAME),
+                format_version=np.array(FORMAT_VERSION, np.int32),
+                branching=np.array(self.branching, np.int32),
+                depth=np.array(self.depth, np.int32),
+                centres=self.centres.astype(np.uint8),
+                children=self.children.astype(np.int32),
+                node_word=self.node_word.astype(np.int32),
+                idf=self.idf.astype(np.float32),
                 n_training_images=np.array(self.training.n_images, np.int64),
                 n_training_descriptors=np.array(self.training.n_descriptors, np.int64),
-                seed=np.array(self.training.seed, np.int64), source=np.array(self.training.source))
+                seed=np.array(self.training.seed, np.int64),
+                source=np.array(self.training.source),
+            )
         return path
 
     @staticmethod
-    def load(path: str | Path = "") -> "Vocabulary":
+    def load(path: str | Path = "") -> Vocabulary:
         """Read a vocabulary file; ``""`` reads the shipped one (:func:`shipped_vocabulary_path`).
 
         Raises:
@@ -255,29 +262,46 @@ class Vocabulary:
         """
         path = Path(path) if str(path) else shipped_vocabulary_path()
         if not path.is_file():
-            raise VocabularyError(path, "no such vocabulary file" + (
-                " (the shipped vocabulary is missing: rebuild it with `neb-slam vocab train`)"
-                if path == shipped_vocabulary_path() else ""))
+            raise VocabularyError(
+                path,
+                "no such vocabulary file"
+                + (
+                    " (the shipped vocabulary is missing: rebuild it with `neb-slam vocab train`)"
+                    if path == shipped_vocabulary_path()
+                    else ""
+                ),
+            )
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
-        except Exception as exc:  # noqa: BLE001 -- numpy raises several kinds for a bad archive
+        except Exception as exc:
             raise VocabularyError(path, f"not a vocabulary file (.npz expected): {exc}") from None
         if "format_version" not in arrays or str(arrays.get("format", "")) != FORMAT_NAME:
             raise VocabularyError(path, f"not a {FORMAT_NAME!r} file (no format/format_version fields)")
         version = int(arrays["format_version"])
         if version != FORMAT_VERSION:
-            raise VocabularyError(path, f"vocabulary format version {version}, this version of neb_slam_core "
-                                        f"reads version {FORMAT_VERSION}; retrain it with `neb-slam vocab train`")
+            raise VocabularyError(
+                path,
+                f"vocabulary format version {version}, this version of neb_slam_core "
+                f"reads version {FORMAT_VERSION}; retrain it with `neb-slam vocab train`",
+            )
         missing = [k for k in ("branching", "depth", "centres", "children", "node_word", "idf") if k not in arrays]
         if missing:
             raise VocabularyError(path, f"vocabulary file lacks the fields {', '.join(missing)}")
         vocab = Vocabulary(
-            branching=int(arrays["branching"]), depth=int(arrays["depth"]),
-            centres=np.ascontiguousarray(arrays["centres"], np.uint8), children=arrays["children"].astype(np.int32),
-            node_word=arrays["node_word"].astype(np.int32), idf=arrays["idf"].astype(np.float32),
-            training=TrainingRecord(int(arrays.get("n_training_images", 0)), int(arrays.get("n_training_descriptors", 0)),
-                                    int(arrays.get("seed", 0)), str(arrays.get("source", ""))))
+            branching=int(arrays["branching"]),
+            depth=int(arrays["depth"]),
+            centres=np.ascontiguousarray(arrays["centres"], np.uint8),
+            children=arrays["children"].astype(np.int32),
+            node_word=arrays["node_word"].astype(np.int32),
+            idf=arrays["idf"].astype(np.float32),
+            training=TrainingRecord(
+                int(arrays.get("n_training_images", 0)),
+                int(arrays.get("n_training_descriptors", 0)),
+                int(arrays.get("seed", 0)),
+                str(arrays.get("source", "")),
+            ),
+        )
         problem = vocab.problem()
         if problem:
             raise VocabularyError(path, f"inconsistent vocabulary: {problem}")
@@ -295,8 +319,9 @@ class Vocabulary:
         if self.children.min() < -1 or self.children.max() >= n:
             return "child ids out of range"
         leaves = self.children[:, 0] < 0
-        if np.any(self.node_word[~leaves] != -1) or not np.array_equal(np.sort(self.node_word[leaves]),
-                                                                       np.arange(leaves.sum())):
+        if np.any(self.node_word[~leaves] != -1) or not np.array_equal(
+            np.sort(self.node_word[leaves]), np.arange(leaves.sum())
+        ):
             return "leaves must hold the word ids 0..n_words-1 and inner nodes -1"
         if len(self.idf) != leaves.sum() or not np.all(np.isfinite(self.idf)) or self.idf.min() < 0:
             return f"idf has {len(self.idf)} entries for {int(leaves.sum())} words, or is negative / not finite"
@@ -333,7 +358,9 @@ def _seed_centres(d: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray
     return d[chosen].copy()
 
 
-def _k_majority(d_u8: np.ndarray, k: int, rng: np.random.Generator, max_iterations: int) -> tuple[np.ndarray, np.ndarray]:
+def _k_majority(
+    d_u8: np.ndarray, k: int, rng: np.random.Generator, max_iterations: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Cluster ``(n, 32)`` uint8 descriptors into at most ``k`` groups by k-majority.
 
     Returns:
@@ -353,7 +380,7 @@ def _k_majority(d_u8: np.ndarray, k: int, rng: np.random.Generator, max_iteratio
         order = np.argsort(labels, kind="stable")
         _, starts, sizes = np.unique(labels[order], return_index=True, return_counts=True)
         counts = np.add.reduceat(bits[order], starts, axis=0, dtype=np.int32)  # (m, 256)
-        centres = _as_u64(np.packbits(2 * counts > sizes[:, None], axis=1))    # empty clusters drop out here
+        centres = _as_u64(np.packbits(2 * counts > sizes[:, None], axis=1))  # empty clusters drop out here
     labels, _ = _nearest(d, centres)
     used = np.unique(labels)
     if len(used) < len(centres):  # a centre that lost all members in the final assignment
@@ -362,9 +389,15 @@ def _k_majority(d_u8: np.ndarray, k: int, rng: np.random.Generator, max_iteratio
     return np.ascontiguousarray(centres).view(np.uint8).reshape(-1, DESCRIPTOR_BYTES), labels
 
 
-def train_vocabulary(descriptors_per_image: Sequence[np.ndarray], branching: int = 10, depth: int = 4,
-                     seed: int = 0, max_iterations: int = 10, source: str = "",
-                     progress: Callable[[int, int], None] | None = None) -> Vocabulary:
+def train_vocabulary(
+    descriptors_per_image: Sequence[np.ndarray],
+    branching: int = 10,
+    depth: int = 4,
+    seed: int = 0,
+    max_iterations: int = 10,
+    source: str = "",
+    progress: Callable[[int, int], None] | None = None,
+) -> Vocabulary:
     """Build a vocabulary tree and its idf weights from training images' descriptors.
 
     Args:
@@ -413,12 +446,13 @@ def train_vocabulary(descriptors_per_image: Sequence[np.ndarray], branching: int
     n_nodes = len(centres)
     child_arr = np.full((n_nodes, branching), -1, dtype=np.int32)
     for i, kids in enumerate(children):
-        child_arr[i, :len(kids)] = kids
+        child_arr[i, : len(kids)] = kids
     node_word = np.full(n_nodes, -1, dtype=np.int32)
     leaves = np.flatnonzero(child_arr[:, 0] < 0)
     node_word[leaves] = np.arange(len(leaves), dtype=np.int32)
-    vocab = Vocabulary(branching, depth, np.stack(centres).astype(np.uint8), child_arr, node_word,
-                       np.zeros(len(leaves), np.float32))
+    vocab = Vocabulary(
+        branching, depth, np.stack(centres).astype(np.uint8), child_arr, node_word, np.zeros(len(leaves), np.float32)
+    )
 
     # idf = log(N / N_word) over the training images; a word no training image reaches when descending
     # (possible only through ties) counts as seen once
@@ -428,5 +462,12 @@ def train_vocabulary(descriptors_per_image: Sequence[np.ndarray], branching: int
         if len(d):
             containing[np.unique(vocab.words(d))] += 1
     idf = np.log(n_images / np.maximum(containing, 1)).astype(np.float32)
-    return Vocabulary(branching, depth, vocab.centres, child_arr, node_word, idf,
-                      TrainingRecord(n_images, int(len(all_d)), int(seed), source))
+    return Vocabulary(
+        branching,
+        depth,
+        vocab.centres,
+        child_arr,
+        node_word,
+        idf,
+        TrainingRecord(n_images, int(len(all_d)), int(seed), source),
+    )

@@ -4,8 +4,8 @@ which blocks each keyframe belongs to."""
 from __future__ import annotations
 
 import bisect
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Iterable
 
 import numpy as np
 import torch
@@ -105,7 +105,9 @@ class KeyframeStore:
                 torch.cat([k.pixels.dirs_cam for k in kfs]),
                 torch.cat([k.pixels.rgb for k in kfs]),
                 torch.cat([k.pixels.depth_m for k in kfs]),
-                torch.cat([torch.full((len(k.pixels),), k.keyframe_id, dtype=torch.long, device=self.device) for k in kfs]),
+                torch.cat(
+                    [torch.full((len(k.pixels),), k.keyframe_id, dtype=torch.long, device=self.device) for k in kfs]
+                ),
             )
         return self._flat
 

@@ -35,8 +35,9 @@ class Mapper:
     changes between calls), and the first keyframe is held fixed to anchor the world frame.
     """
 
-    def __init__(self, block_map: BlockMap, keyframes: KeyframeStore, cfg: MappingConfig, render_cfg: RenderConfig,
-                 seed: int = 0):
+    def __init__(
+        self, block_map: BlockMap, keyframes: KeyframeStore, cfg: MappingConfig, render_cfg: RenderConfig, seed: int = 0
+    ):
         self.block_map = block_map
         self.keyframes = keyframes
         self.cfg = cfg
@@ -61,8 +62,9 @@ class Mapper:
     def _blocks_with_gradient(self) -> set[int]:
         return {b.block_id for b in self.block_map.blocks if b.grid.table.grad is not None}
 
-    def optimise(self, iterations: int | None = None, optimise_poses: bool | None = None,
-                 fixed_until: int = 0) -> MappingResult:
+    def optimise(
+        self, iterations: int | None = None, optimise_poses: bool | None = None, fixed_until: int = 0
+    ) -> MappingResult:
         """``iterations`` joint steps over all keyframes plus the newest block's keyframes; keyframes
         ``0..fixed_until`` keep their poses (keyframe 0 anchors the world frame; a loop correction also
         holds the keyframes up to the loop's older end)."""
@@ -95,7 +97,7 @@ class Mapper:
             changed |= self._blocks_with_gradient()
             self.map_opt.step()
             if pose_opt is not None:
-                poses.delta.grad[:fixed_until + 1] = 0.0  # a fresh Adam moves no zero-gradient pose
+                poses.delta.grad[: fixed_until + 1] = 0.0  # a fresh Adam moves no zero-gradient pose
                 pose_opt.step()
             loss_value = float(loss.total.detach())
         if pose_opt is not None:

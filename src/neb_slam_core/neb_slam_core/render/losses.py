@@ -105,9 +105,18 @@ def combine(terms: dict[str, Residual]) -> Objective:
     return Objective(terms, values, total)
 
 
-def render_residuals(weights: LossWeights, truncation_m: float, rgb: torch.Tensor, depth_m: torch.Tensor,
-                     sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, observed: torch.Tensor,
-                     rgb_obs: torch.Tensor, depth_obs: torch.Tensor) -> dict[str, Residual]:
+def render_residuals(
+    weights: LossWeights,
+    truncation_m: float,
+    rgb: torch.Tensor,
+    depth_m: torch.Tensor,
+    sdf: torch.Tensor,
+    z: torch.Tensor,
+    sample_valid: torch.Tensor,
+    observed: torch.Tensor,
+    rgb_obs: torch.Tensor,
+    depth_obs: torch.Tensor,
+) -> dict[str, Residual]:
     """The four rendering terms of ``R`` rays with ``S`` samples each.
 
     Args:
@@ -139,8 +148,9 @@ def render_residuals(weights: LossWeights, truncation_m: float, rgb: torch.Tenso
     }
 
 
-def smoothness_residual(weight: float, features: torch.Tensor, neighbours: torch.Tensor,
-                        valid: torch.Tensor) -> Residual:
+def smoothness_residual(
+    weight: float, features: torch.Tensor, neighbours: torch.Tensor, valid: torch.Tensor
+) -> Residual:
     """Feature smoothness: ``(G, D)`` features at random points, ``(G, 3, D)`` at the points shifted by one
     step along x, y, z; per point the summed squared differences, then the mean over ``valid`` points.
     Independent of the camera pose."""

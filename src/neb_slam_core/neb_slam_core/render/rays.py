@@ -30,12 +30,12 @@ class RayBatch:
     def __len__(self) -> int:
         return self.origins.shape[0]
 
-    def __getitem__(self, index) -> "RayBatch":
+    def __getitem__(self, index) -> RayBatch:
         """The rays selected by ``index`` (a slice, an index tensor or a mask)."""
         return RayBatch(self.origins[index], self.dirs[index], self.rgb[index], self.depth_m[index])
 
     @staticmethod
-    def cat(batches: list["RayBatch"]) -> "RayBatch":
+    def cat(batches: list[RayBatch]) -> RayBatch:
         return RayBatch(*(torch.cat([getattr(b, f) for b in batches]) for f in ("origins", "dirs", "rgb", "depth_m")))
 
 
@@ -64,8 +64,14 @@ class PixelSamples:
         return self.dirs_cam.shape[0]
 
 
-def sample_pixels(frame: RgbdFrame, n: int, generator: np.random.Generator, valid_depth_only: bool = False,
-                  border: int = 0, device: torch.device | str = "cpu") -> PixelSamples:
+def sample_pixels(
+    frame: RgbdFrame,
+    n: int,
+    generator: np.random.Generator,
+    valid_depth_only: bool = False,
+    border: int = 0,
+    device: torch.device | str = "cpu",
+) -> PixelSamples:
     """Draw ``n`` random pixels (without replacement when possible) of ``frame``.
 
     ``valid_depth_only`` restricts the draw to pixels with depth; ``border`` skips that many pixels at
@@ -79,7 +85,7 @@ def sample_pixels(frame: RgbdFrame, n: int, generator: np.random.Generator, vali
             mask[:, :border] = mask[:, -border:] = False
         flat = np.flatnonzero(mask)
     else:
-        vv, uu = np.mgrid[border:h - border, border:w - border]
+        vv, uu = np.mgrid[border : h - border, border : w - border]
         flat = (vv * w + uu).ravel()
     if flat.size == 0:
         return all_pixels(frame, np.zeros(0, dtype=np.int64), device)
@@ -87,7 +93,9 @@ def sample_pixels(frame: RgbdFrame, n: int, generator: np.random.Generator, vali
     return all_pixels(frame, pick, device)
 
 
-def all_pixels(frame: RgbdFrame, flat_index: np.ndarray | None = None, device: torch.device | str = "cpu") -> PixelSamples:
+def all_pixels(
+    frame: RgbdFrame, flat_index: np.ndarray | None = None, device: torch.device | str = "cpu"
+) -> PixelSamples:
     """The pixels ``flat_index`` (row-major) of ``frame``, or every pixel when None."""
     h, w = frame.depth_m.shape
     if flat_index is None:

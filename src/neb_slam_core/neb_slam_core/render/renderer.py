@@ -12,8 +12,15 @@ from .sampling import evaluated_samples, sample_depths
 from .volume import RenderOutput, composite, observed_rays, sdf_weights
 
 
-def query_samples(block_map: BlockMap, points: torch.Tensor, z: torch.Tensor, depth_m: torch.Tensor,
-                  sampling: SamplingConfig, block_ids: list[int] | None = None, with_colour: bool = True) -> MapSample:
+def query_samples(
+    block_map: BlockMap,
+    points: torch.Tensor,
+    z: torch.Tensor,
+    depth_m: torch.Tensor,
+    sampling: SamplingConfig,
+    block_ids: list[int] | None = None,
+    with_colour: bool = True,
+) -> MapSample:
     """The map at the ``(R, S, 3)`` sample points of ``R`` rays (depths ``z`` (R, S), measured depth
     ``depth_m`` (R,)), flattened to ``R * S``. Samples too far behind the measured depth
     (:func:`~neb_slam_core.render.sampling.evaluated_samples`) are not evaluated and come back invalid,
@@ -25,14 +32,23 @@ def query_samples(block_map: BlockMap, points: torch.Tensor, z: torch.Tensor, de
     idx = keep.reshape(-1).nonzero(as_tuple=True)[0]
     part = block_map.query(flat[idx], block_ids, with_colour=with_colour)
     n = flat.shape[0]
-    return MapSample(part.sdf.new_zeros(n).index_copy(0, idx, part.sdf),
-                     part.rgb.new_zeros(n, 3).index_copy(0, idx, part.rgb),
-                     part.valid.new_zeros(n).index_copy(0, idx, part.valid))
+    return MapSample(
+        part.sdf.new_zeros(n).index_copy(0, idx, part.sdf),
+        part.rgb.new_zeros(n, 3).index_copy(0, idx, part.rgb),
+        part.valid.new_zeros(n).index_copy(0, idx, part.valid),
+    )
 
 
-def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
-                stratified: bool = True, generator: torch.Generator | None = None,
-                with_colour: bool = True, z: torch.Tensor | None = None) -> RenderOutput:
+def render_rays(
+    block_map: BlockMap,
+    rays: RayBatch,
+    cfg: RenderConfig,
+    block_ids: list[int] | None = None,
+    stratified: bool = True,
+    generator: torch.Generator | None = None,
+    with_colour: bool = True,
+    z: torch.Tensor | None = None,
+) -> RenderOutput:
     """Sample, query the blocks ``block_ids`` (all when None) and composite ``R`` rays.
 
     Samples outside every consulted block are discarded (weight 0), as the paper prescribes, and so are
@@ -48,12 +64,14 @@ def render_rays(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_id
     valid = sample.valid.reshape(r, s)
     w = sdf_weights(sdf, z, valid, cfg.truncation_m)
     depth, rgb = composite(w, z, sample.rgb.reshape(r, s, 3))
-    return RenderOutput(depth, rgb, z, sdf, valid, valid.any(dim=-1),
-                        observed_rays(valid, z, rays.depth_m, cfg.truncation_m))
+    return RenderOutput(
+        depth, rgb, z, sdf, valid, valid.any(dim=-1), observed_rays(valid, z, rays.depth_m, cfg.truncation_m)
+    )
 
 
-def smoothness_term(block_map: BlockMap, cfg: RenderConfig, block_ids: list[int] | None,
-                    generator: torch.Generator | None = None) -> Residual | None:
+def smoothness_term(
+    block_map: BlockMap, cfg: RenderConfig, block_ids: list[int] | None, generator: torch.Generator | None = None
+) -> Residual | None:
     """Feature smoothness on ``cfg.smoothness_points`` random points of random consulted blocks (None when
     the term is off or no block is consulted)."""
     ids = list(range(len(block_map))) if block_ids is None else list(block_ids)
@@ -75,14 +93,30 @@ def smoothness_term(block_map: BlockMap, cfg: RenderConfig, block_ids: list[int]
     return smoothness_residual(cfg.weights.smoothness, f0, f1, v)
 
 
-def objective(block_map: BlockMap, rays: RayBatch, cfg: RenderConfig, block_ids: list[int] | None = None,
-              generator: torch.Generator | None = None, with_smoothness: bool = True,
-              z: torch.Tensor | None = None) -> tuple[Objective, RenderOutput]:
+def objective(
+    block_map: BlockMap,
+    rays: RayBatch,
+    cfg: RenderConfig,
+    block_ids: list[int] | None = None,
+    generator: torch.Generator | None = None,
+    with_smoothness: bool = True,
+    z: torch.Tensor | None = None,
+) -> tuple[Objective, RenderOutput]:
     """Render ``rays`` and evaluate the paper's weighted objective on them (at sample depths ``z`` when
     given, else stratified ones)."""
     out = render_rays(block_map, rays, cfg, block_ids, stratified=True, generator=generator, z=z)
-    terms = render_residuals(cfg.weights, cfg.truncation_m, out.rgb, out.depth_m, out.sdf, out.z, out.sample_valid,
-                             out.observed, rays.rgb, rays.depth_m)
+    terms = render_residuals(
+        cfg.weights,
+        cfg.truncation_m,
+        out.rgb,
+        out.depth_m,
+        out.sdf,
+        out.z,
+        out.sample_valid,
+        out.observed,
+        rays.rgb,
+        rays.depth_m,
+    )
     smooth = smoothness_term(block_map, cfg, block_ids, generator) if with_smoothness else None
     if smooth is not None:
         terms["smoothness"] = smooth

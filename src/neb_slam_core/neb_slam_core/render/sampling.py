@@ -7,8 +7,9 @@ import torch
 from ..config import SamplingConfig
 
 
-def sample_depths(depth_m: torch.Tensor, cfg: SamplingConfig, stratified: bool = True,
-                  generator: torch.Generator | None = None) -> torch.Tensor:
+def sample_depths(
+    depth_m: torch.Tensor, cfg: SamplingConfig, stratified: bool = True, generator: torch.Generator | None = None
+) -> torch.Tensor:
     """Ray parameters (z-depths) of the samples, sorted along each ray.
 
     Args:

@@ -30,8 +30,9 @@ class RenderOutput:
     observed: torch.Tensor
 
 
-def sdf_weights(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, truncation_m: float,
-                eps: float = 1e-8) -> torch.Tensor:
+def sdf_weights(
+    sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, truncation_m: float, eps: float = 1e-8
+) -> torch.Tensor:
     """Normalised weights ``w_i = sigmoid(s_i/tr) sigmoid(-s_i/tr) / sum_j w_j`` (paper, after Azinovic et al.).
 
     The decoder predicts the SDF in truncation units (``sdf`` = s / tr, 1 in free space at the band's
@@ -52,8 +53,9 @@ def sdf_weights(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, 
     return u / (u.sum(dim=-1, keepdim=True) + eps)
 
 
-def _bells(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor,
-           truncation_m: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _bells(
+    sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, truncation_m: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The unnormalised weights ``u`` of :func:`sdf_weights` (the bell times the valid and kept masks) and
     ``sigmoid(sdf / tr)``, which their slope needs."""
     x = sdf / truncation_m
@@ -70,8 +72,9 @@ def _bells(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor,
 
 
 @torch.no_grad()
-def sdf_weight_slopes(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, truncation_m: float,
-                      eps: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor]:
+def sdf_weight_slopes(
+    sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Tensor, truncation_m: float, eps: float = 1e-8
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The weights of :func:`sdf_weights` and how any composite of them moves with the SDF, in closed form.
 
     For a per-sample quantity ``v`` that does not depend on the SDF (depth, colour), the composite
@@ -88,8 +91,9 @@ def sdf_weight_slopes(sdf: torch.Tensor, z: torch.Tensor, sample_valid: torch.Te
     return u / norm, u * (1.0 - 2.0 * sig) / (truncation_m * norm)
 
 
-def observed_rays(sample_valid: torch.Tensor, z: torch.Tensor, depth_obs: torch.Tensor,
-                  truncation_m: float) -> torch.Tensor:
+def observed_rays(
+    sample_valid: torch.Tensor, z: torch.Tensor, depth_obs: torch.Tensor, truncation_m: float
+) -> torch.Tensor:
     """Rays whose rendered colour and depth can be compared with the observation: ``(R,)`` bool.
 
     A ray with measured depth counts only when a consulted block holds a sample within ``tr`` of that

@@ -192,9 +192,13 @@ def _installed_module(key: str) -> ModuleType | None:
         return None
     built_for = getattr(module, "build_key", None)
     if built_for != key:
-        log.warning("map C++ kernels: %s was built for other sources, flags, torch or CPU (key %s, these need %s): "
-                    "compiling them on first use; reinstall the package to build them at install",
-                    module.__file__, built_for, key)
+        log.warning(
+            "map C++ kernels: %s was built for other sources, flags, torch or CPU (key %s, these need %s): "
+            "compiling them on first use; reinstall the package to build them at install",
+            module.__file__,
+            built_for,
+            key,
+        )
         return None
     return module
 
@@ -213,9 +217,14 @@ def _compile_on_first_use(flags: list[str], key: str) -> ModuleType:
         if not target.is_file():
             log.info("compiling the map's C++ kernels (about a minute, once), cache: %s", target)
             with tempfile.TemporaryDirectory(prefix=f"{name}-", dir=root) as build_dir:
-                module = cpp_extension.load(name=name, sources=[str(SOURCE)],
-                                            extra_cflags=flags + [key_define(key)], extra_ldflags=["-fopenmp"],
-                                            build_directory=build_dir, verbose=False)
+                module = cpp_extension.load(
+                    name=name,
+                    sources=[str(SOURCE)],
+                    extra_cflags=flags + [key_define(key)],
+                    extra_ldflags=["-fopenmp"],
+                    build_directory=build_dir,
+                    verbose=False,
+                )
                 # torch renames a second build of one name in a process (name_v1): that one is not kept
                 if module.__name__ == name:
                     os.replace(Path(build_dir) / target.name, target)  # one rename: never a half-written file

@@ -16,8 +16,15 @@ class NeuralBlock(nn.Module):
     it is mapping state, kept by :class:`~neb_slam_core.mapping.keyframes.KeyframeStore`.
     """
 
-    def __init__(self, block_id: int, centre_world, edge_m: float, grid_cfg: HashGridConfig,
-                 backend: str = "auto", seed: int | None = None):
+    def __init__(
+        self,
+        block_id: int,
+        centre_world,
+        edge_m: float,
+        grid_cfg: HashGridConfig,
+        backend: str = "auto",
+        seed: int | None = None,
+    ):
         super().__init__()
         self.block_id = int(block_id)
         self.edge_m = float(edge_m)

@@ -48,8 +48,14 @@ class Allocation:
 class BlockMap(nn.Module):
     """All neural blocks of a scene plus the shared one-blob encoding and decoders."""
 
-    def __init__(self, block_cfg: BlockConfig = BlockConfig(), blob_cfg: OneBlobConfig = OneBlobConfig(),
-                 decoder_cfg: DecoderConfig = DecoderConfig(), grid_backend: str = "auto", seed: int = 0):
+    def __init__(
+        self,
+        block_cfg: BlockConfig = BlockConfig(),
+        blob_cfg: OneBlobConfig = OneBlobConfig(),
+        decoder_cfg: DecoderConfig = DecoderConfig(),
+        grid_backend: str = "auto",
+        seed: int = 0,
+    ):
         super().__init__()
         self.block_cfg = block_cfg
         self.blob_cfg = blob_cfg
@@ -60,8 +66,9 @@ class BlockMap(nn.Module):
         self.one_blob = OneBlob(blob_cfg, backend=grid_backend)
         with torch.random.fork_rng(devices=[]):  # decoder initialisation is part of the map's seed
             torch.manual_seed(self.seed)
-            self.decoders = Decoders(self.one_blob.n_output_dims, block_cfg.grid.n_output_dims, decoder_cfg,
-                                     backend=grid_backend)
+            self.decoders = Decoders(
+                self.one_blob.n_output_dims, block_cfg.grid.n_output_dims, decoder_cfg, backend=grid_backend
+            )
 
     # ------------------------------------------------------------------ blocks
 
@@ -75,8 +82,14 @@ class BlockMap(nn.Module):
     def add_block(self, centre_world) -> NeuralBlock:
         """Allocate a new block centred at ``centre_world`` (3,); existing blocks are untouched."""
         block_id = len(self.blocks)
-        block = NeuralBlock(block_id, centre_world, self.block_cfg.edge_m, self.block_cfg.grid,
-                            backend=self.grid_backend, seed=self.seed * 100_003 + block_id)
+        block = NeuralBlock(
+            block_id,
+            centre_world,
+            self.block_cfg.edge_m,
+            self.block_cfg.grid,
+            backend=self.grid_backend,
+            seed=self.seed * 100_003 + block_id,
+        )
         self.blocks.append(block.to(self.device))
         return block
 
@@ -98,8 +111,9 @@ class BlockMap(nn.Module):
         half = 0.5 * self.block_cfg.edge_m
         return half - (points_world[:, None, :] - centres.to(points_world.dtype)[None]).abs().amax(dim=-1)
 
-    def blocks_in_frustum(self, T_world_cam: np.ndarray, intrinsics: Intrinsics, near_m: float,
-                          far_m: float) -> list[int]:
+    def blocks_in_frustum(
+        self, T_world_cam: np.ndarray, intrinsics: Intrinsics, near_m: float, far_m: float
+    ) -> list[int]:
         """Ids of the blocks that may intersect the camera frustum between ``near_m`` and ``far_m``.
 
         Conservative: a block is dropped only when all its corners lie outside one frustum plane, or all
@@ -116,7 +130,8 @@ class BlockMap(nn.Module):
         x, y, z = corners_c[..., 0], corners_c[..., 1], corners_c[..., 2]
         k = intrinsics
         outside = (
-            (z < near_m).all(-1) | (z > far_m).all(-1)
+            (z < near_m).all(-1)
+            | (z > far_m).all(-1)
             | (k.fx * x + k.cx * z < 0).all(-1)  # u < 0
             | (k.fx * x + (k.cx - k.width) * z > 0).all(-1)  # u > W
             | (k.fy * y + k.cy * z < 0).all(-1)  # v < 0
@@ -133,8 +148,9 @@ class BlockMap(nn.Module):
 
     # ------------------------------------------------------------------ queries
 
-    def grid_features(self, points_world: torch.Tensor,
-                      block_ids: list[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def grid_features(
+        self, points_world: torch.Tensor, block_ids: list[int] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Hash features averaged over the containing blocks (weighted by the blend window, see
         :class:`~neb_slam_core.config.BlockConfig`).
 
@@ -150,8 +166,9 @@ class BlockMap(nn.Module):
         centres = self.centres()[ids].to(points_world.dtype)
         if len(ids) > 1:
             # without gradients, the C++ kernel does the whole blend in one pass (same sum as below)
-            blended = encode_blended(points_world, centres, [self.blocks[i].grid for i in ids],
-                                     self.block_cfg.edge_m, self.block_cfg.blend_m)
+            blended = encode_blended(
+                points_world, centres, [self.blocks[i].grid for i in ids], self.block_cfg.edge_m, self.block_cfg.blend_m
+            )
             if blended is not None:
                 return blended
         to_face = self._face_distance(points_world, centres)  # (N, M)
@@ -173,8 +190,9 @@ class BlockMap(nn.Module):
             return feats, valid
         counts = inside.sum(dim=0).tolist()
         local = (points_world[point_of] - centres[block_of]) / self.block_cfg.edge_m + 0.5
-        encoded = torch.cat([self.blocks[block_id].grid(chunk)
-                             for block_id, chunk in zip(ids, local.split(counts)) if chunk.shape[0]])
+        encoded = torch.cat(
+            [self.blocks[block_id].grid(chunk) for block_id, chunk in zip(ids, local.split(counts)) if chunk.shape[0]]
+        )
         w = self._blend_weight(to_face[point_of, block_of])
         # in place: an out-of-place index_add copies the whole (N, L*F) tensor
         feats.index_add_(0, point_of, encoded.to(feats.dtype) * w[:, None])
@@ -191,8 +209,9 @@ class BlockMap(nn.Module):
             return torch.ones_like(to_face)
         return (to_face / blend).clamp(min=1e-6, max=1.0)
 
-    def query(self, points_world: torch.Tensor, block_ids: list[int] | None = None,
-              with_colour: bool = True) -> MapSample:
+    def query(
+        self, points_world: torch.Tensor, block_ids: list[int] | None = None, with_colour: bool = True
+    ) -> MapSample:
         """Evaluate SDF and colour at ``(N, 3)`` world points (0 at invalid points).
 
         The decoders run on every point (dense, no scatter); invalid points are masked afterwards,
@@ -218,8 +237,14 @@ class BlockMap(nn.Module):
         if not ids:
             return None
         with torch.no_grad():
-            encoded = encode_blended(points_world, self.centres()[ids], [self.blocks[i].grid for i in ids],
-                                     self.block_cfg.edge_m, self.block_cfg.blend_m, jacobian=True)
+            encoded = encode_blended(
+                points_world,
+                self.centres()[ids],
+                [self.blocks[i].grid for i in ids],
+                self.block_cfg.edge_m,
+                self.block_cfg.blend_m,
+                jacobian=True,
+            )
             if encoded is None:
                 return None
             feats, valid, d_feats = encoded

@@ -45,8 +45,7 @@ class Decoders(nn.Module):
         run) or ``"reference"`` (torch only), as :class:`~.hash_grid.HashGrid`'s.
     """
 
-    def __init__(self, n_blob_dims: int, n_grid_dims: int, cfg: DecoderConfig = DecoderConfig(),
-                 backend: str = "auto"):
+    def __init__(self, n_blob_dims: int, n_grid_dims: int, cfg: DecoderConfig = DecoderConfig(), backend: str = "auto"):
         super().__init__()
         if backend not in BACKENDS:
             raise ConfigError(f"Decoders backend {backend!r}: expected one of {', '.join(BACKENDS)}")
@@ -70,8 +69,9 @@ class Decoders(nn.Module):
             return self._fast(blob, grid_features, with_colour=False)[0]  # no colour computed
         return self._geometry(blob, grid_features)[..., 0]
 
-    def forward_with_tangents(self, blob: torch.Tensor, grid_features: torch.Tensor, blob_slopes: torch.Tensor,
-                              d_features: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def forward_with_tangents(
+        self, blob: torch.Tensor, grid_features: torch.Tensor, blob_slopes: torch.Tensor, d_features: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
         """Both MLPs and their derivatives along the three world axes (forward mode), without autograd.
 
         Args:
@@ -90,11 +90,16 @@ class Decoders(nn.Module):
         (``csrc/decoder_kernels.h``), else the same maths in torch.
         """
         n, n_blob = blob.shape
-        if blob_slopes.shape != (n, 3, n_blob // 3) or n_blob % 3 or \
-                d_features.shape != (grid_features.shape[0], 3, grid_features.shape[1]):
-            raise ValueError(f"Decoders: tangents {tuple(blob_slopes.shape)} and {tuple(d_features.shape)} do not "
-                             f"match the inputs {tuple(blob.shape)} and {tuple(grid_features.shape)} "
-                             "((N, 3, blob dims / 3) and (N, 3, feature dims))")
+        if (
+            blob_slopes.shape != (n, 3, n_blob // 3)
+            or n_blob % 3
+            or d_features.shape != (grid_features.shape[0], 3, grid_features.shape[1])
+        ):
+            raise ValueError(
+                f"Decoders: tangents {tuple(blob_slopes.shape)} and {tuple(d_features.shape)} do not "
+                f"match the inputs {tuple(blob.shape)} and {tuple(grid_features.shape)} "
+                "((N, 3, blob dims / 3) and (N, 3, feature dims))"
+            )
         with torch.no_grad():
             if self.uses_fast_path(blob, grid_features):
                 return self._fast_tangents(blob, grid_features, blob_slopes, d_features)
@@ -122,8 +127,11 @@ class Decoders(nn.Module):
         return self.geometry[2](_first_layer(self.geometry[0], blob, grid_features))
 
     def _weights(self) -> list[torch.Tensor]:
-        return [t.detach().contiguous() for layer in (self.geometry[0], self.geometry[2], self.colour[0],
-                                                      self.colour[2]) for t in (layer.weight, layer.bias)]
+        return [
+            t.detach().contiguous()
+            for layer in (self.geometry[0], self.geometry[2], self.colour[0], self.colour[2])
+            for t in (layer.weight, layer.bias)
+        ]
 
     def uses_fast_path(self, blob: torch.Tensor, grid_features: torch.Tensor) -> bool:
         """Whether a call on these inputs runs the C++ forward: no gradient wanted, CPU, the weights' float
@@ -131,29 +139,50 @@ class Decoders(nn.Module):
         if torch.is_grad_enabled():
             return False
         dtype = self.geometry[0].weight.dtype
-        eligible = (dtype in FAST_DTYPES and blob.dtype == grid_features.dtype == dtype
-                    and blob.device.type == grid_features.device.type == self.geometry[0].weight.device.type == "cpu"
-                    and blob.dim() == grid_features.dim() == 2)
-        return _ext.use_fast_path(self.backend, eligible, "Decoders",
-                                  f"2-D CPU inputs of the weights' float dtype ({dtype}); got {blob.dtype} / "
-                                  f"{grid_features.dtype} on {blob.device}")
+        eligible = (
+            dtype in FAST_DTYPES
+            and blob.dtype == grid_features.dtype == dtype
+            and blob.device.type == grid_features.device.type == self.geometry[0].weight.device.type == "cpu"
+            and blob.dim() == grid_features.dim() == 2
+        )
+        return _ext.use_fast_path(
+            self.backend,
+            eligible,
+            "Decoders",
+            f"2-D CPU inputs of the weights' float dtype ({dtype}); got {blob.dtype} / "
+            f"{grid_features.dtype} on {blob.device}",
+        )
 
-    def _fast_tangents(self, blob: torch.Tensor, grid_features: torch.Tensor, blob_slopes: torch.Tensor,
-                       d_features: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def _fast_tangents(
+        self, blob: torch.Tensor, grid_features: torch.Tensor, blob_slopes: torch.Tensor, d_features: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
         self._check_inputs(blob, grid_features)
-        return tuple(_ext.load_map_kernels().decoder_forward_tangents(
-            blob.contiguous(), grid_features.contiguous(), blob_slopes.to(blob.dtype).contiguous(),
-            d_features.to(blob.dtype).contiguous(), self._weights()))
+        return tuple(
+            _ext.load_map_kernels().decoder_forward_tangents(
+                blob.contiguous(),
+                grid_features.contiguous(),
+                blob_slopes.to(blob.dtype).contiguous(),
+                d_features.to(blob.dtype).contiguous(),
+                self._weights(),
+            )
+        )
 
     def _check_inputs(self, blob: torch.Tensor, feats: torch.Tensor) -> None:
-        if (blob.shape[1] + feats.shape[1] != self.geometry[0].in_features or feats.shape[0] != blob.shape[0]
-                or blob.shape[1] + self.cfg.feature_dim != self.colour[0].in_features):
-            raise ValueError(f"Decoders: inputs {tuple(blob.shape)} and {tuple(feats.shape)} do not make the "
-                             f"geometry MLP's {self.geometry[0].in_features} inputs and the colour MLP's "
-                             f"{self.colour[0].in_features}")
+        if (
+            blob.shape[1] + feats.shape[1] != self.geometry[0].in_features
+            or feats.shape[0] != blob.shape[0]
+            or blob.shape[1] + self.cfg.feature_dim != self.colour[0].in_features
+        ):
+            raise ValueError(
+                f"Decoders: inputs {tuple(blob.shape)} and {tuple(feats.shape)} do not make the "
+                f"geometry MLP's {self.geometry[0].in_features} inputs and the colour MLP's "
+                f"{self.colour[0].in_features}"
+            )
 
-    def _fast(self, blob: torch.Tensor, grid_features: torch.Tensor,
-              with_colour: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def _fast(
+        self, blob: torch.Tensor, grid_features: torch.Tensor, with_colour: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         self._check_inputs(blob, grid_features)
-        return _ext.load_map_kernels().decoder_forward(blob.contiguous(), grid_features.contiguous(),
-                                                       self._weights(), with_colour)
+        return _ext.load_map_kernels().decoder_forward(
+            blob.contiguous(), grid_features.contiguous(), self._weights(), with_colour
+        )

@@ -89,7 +89,7 @@ class HashGridMeta:
         return self.n_levels * self.n_features
 
     @classmethod
-    def from_config(cls, cfg: HashGridConfig) -> "HashGridMeta":
+    def from_config(cls, cfg: HashGridConfig) -> HashGridMeta:
         _validate(cfg)
         L, T = cfg.n_levels, cfg.table_size
         resolutions = resolutions_per_level(cfg.base_resolution, cfg.max_resolution, L)
@@ -110,7 +110,7 @@ def resolutions_per_level(base_resolution: int, max_resolution: int, n_levels: i
     if n_levels == 1:
         return (int(base_resolution),)
     b = math.exp((math.log(max_resolution) - math.log(base_resolution)) / (n_levels - 1))
-    return tuple(int(math.floor(base_resolution * b**l * (1.0 + 1e-9))) for l in range(n_levels))
+    return tuple(int(math.floor(base_resolution * b**level * (1.0 + 1e-9))) for level in range(n_levels))
 
 
 def hash_grid_param_count(cfg: HashGridConfig) -> int:
@@ -125,13 +125,22 @@ def _validate(cfg: HashGridConfig) -> None:
             raise ConfigError(f"HashGridConfig.{field} = {getattr(cfg, field)!r}: expected {expected}")
 
     need(isinstance(cfg.n_levels, int) and cfg.n_levels >= 1, "n_levels", "an integer >= 1")
-    need(isinstance(cfg.n_features_per_level, int) and cfg.n_features_per_level >= 1, "n_features_per_level",
-         "an integer >= 1")
-    need(isinstance(cfg.log2_hashmap_size, int) and 1 <= cfg.log2_hashmap_size <= 31, "log2_hashmap_size",
-         "an integer in [1, 31]")
+    need(
+        isinstance(cfg.n_features_per_level, int) and cfg.n_features_per_level >= 1,
+        "n_features_per_level",
+        "an integer >= 1",
+    )
+    need(
+        isinstance(cfg.log2_hashmap_size, int) and 1 <= cfg.log2_hashmap_size <= 31,
+        "log2_hashmap_size",
+        "an integer in [1, 31]",
+    )
     need(isinstance(cfg.base_resolution, int) and cfg.base_resolution >= 1, "base_resolution", "an integer >= 1")
-    need(isinstance(cfg.max_resolution, int) and cfg.max_resolution >= cfg.base_resolution, "max_resolution",
-         f"an integer >= base_resolution ({cfg.base_resolution})")
+    need(
+        isinstance(cfg.max_resolution, int) and cfg.max_resolution >= cfg.base_resolution,
+        "max_resolution",
+        f"an integer >= base_resolution ({cfg.base_resolution})",
+    )
     need(cfg.init_scale >= 0, "init_scale", "a number >= 0")
 
 
@@ -210,8 +219,9 @@ class _FastHashEncode(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, x01: Tensor, table: Tensor, offsets: Tensor, resolutions: Tensor, dense: Tensor,
-                table_size: int) -> Tensor:
+    def forward(
+        ctx, x01: Tensor, table: Tensor, offsets: Tensor, resolutions: Tensor, dense: Tensor, table_size: int
+    ) -> Tensor:
         kernels = _ext.load_map_kernels()
         x01 = x01.detach().contiguous()
         table_c = table.detach().contiguous()
@@ -228,13 +238,22 @@ class _FastHashEncode(torch.autograd.Function):
         if not (need_x or need_table):
             return None, None, None, None, None, None
         grad_x, grad_table = _ext.load_map_kernels().hash_grid_backward(
-            grad_out.to(x01.dtype).contiguous(), x01, table, offsets, resolutions, dense, ctx.table_size,
-            need_x, need_table)
+            grad_out.to(x01.dtype).contiguous(),
+            x01,
+            table,
+            offsets,
+            resolutions,
+            dense,
+            ctx.table_size,
+            need_x,
+            need_table,
+        )
         return grad_x, grad_table, None, None, None, None
 
 
-def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"], edge_m: float,
-                   blend_m: float, jacobian: bool = False) -> tuple[Tensor, ...] | None:
+def encode_blended(
+    points_world: Tensor, centres: Tensor, grids: list[HashGrid], edge_m: float, blend_m: float, jacobian: bool = False
+) -> tuple[Tensor, ...] | None:
     """Hash features of world points blended over several blocks, by the C++ kernel, without autograd.
 
     Block ``b`` is the cube of edge ``edge_m`` centred at ``centres[b]`` with the grid ``grids[b]``; a point
@@ -261,8 +280,17 @@ def encode_blended(points_world: Tensor, centres: Tensor, grids: list["HashGrid"
     c = centres.detach().to(x.dtype).contiguous().reshape(-1, 3)
     g0 = grids[0]
     out, valid, jac = kernels.hash_grid_forward_blocks(
-        x, c, [g.table.detach().contiguous() for g in grids], g0.level_offsets, g0.level_resolutions,
-        g0.level_is_dense, meta.table_size, float(edge_m), float(blend_m), jacobian)
+        x,
+        c,
+        [g.table.detach().contiguous() for g in grids],
+        g0.level_offsets,
+        g0.level_resolutions,
+        g0.level_is_dense,
+        meta.table_size,
+        float(edge_m),
+        float(blend_m),
+        jacobian,
+    )
     return (out, valid, jac) if jacobian else (out, valid)
 
 
@@ -316,16 +344,21 @@ class HashGrid(nn.Module):
         table = torch.empty(self.meta.n_entries, self.meta.n_features, dtype=torch.float32)
         table.uniform_(-cfg.init_scale, cfg.init_scale, generator=generator)
         self.table = nn.Parameter(table)
-        self.register_buffer("level_offsets", torch.tensor(self.meta.level_offsets, dtype=torch.int64),
-                             persistent=False)
-        self.register_buffer("level_resolutions", torch.tensor(self.meta.level_resolutions, dtype=torch.int64),
-                             persistent=False)
-        self.register_buffer("level_is_dense", torch.tensor(self.meta.level_is_dense, dtype=torch.bool),
-                             persistent=False)
+        self.register_buffer(
+            "level_offsets", torch.tensor(self.meta.level_offsets, dtype=torch.int64), persistent=False
+        )
+        self.register_buffer(
+            "level_resolutions", torch.tensor(self.meta.level_resolutions, dtype=torch.int64), persistent=False
+        )
+        self.register_buffer(
+            "level_is_dense", torch.tensor(self.meta.level_is_dense, dtype=torch.bool), persistent=False
+        )
         if backend == "fast":
             if self.meta.n_features not in FAST_FEATURE_COUNTS:
-                raise ConfigError(f"HashGrid backend 'fast': n_features_per_level must be one of "
-                                  f"{FAST_FEATURE_COUNTS}, got {self.meta.n_features}")
+                raise ConfigError(
+                    f"HashGrid backend 'fast': n_features_per_level must be one of "
+                    f"{FAST_FEATURE_COUNTS}, got {self.meta.n_features}"
+                )
             reason = fast_path_unavailable_reason()
             if reason is not None:
                 raise RuntimeError(f"HashGrid backend 'fast' requested but unavailable: {reason}")
@@ -346,14 +379,19 @@ class HashGrid(nn.Module):
         """Whether :meth:`forward` on ``x01`` runs the C++ path (may load the kernels)."""
         if self.backend == "reference":
             return False
-        eligible = (x01.device.type == "cpu" and self.table.device.type == "cpu"
-                    and x01.dtype in FAST_DTYPES and x01.dtype == self.table.dtype
-                    and self.meta.n_features in FAST_FEATURE_COUNTS)
+        eligible = (
+            x01.device.type == "cpu"
+            and self.table.device.type == "cpu"
+            and x01.dtype in FAST_DTYPES
+            and x01.dtype == self.table.dtype
+            and self.meta.n_features in FAST_FEATURE_COUNTS
+        )
         if self.backend == "fast":
             if not eligible:
                 raise ValueError(
                     "HashGrid backend 'fast' needs CPU float32/float64 points of the table's dtype "
-                    f"({self.table.dtype}, {self.table.device}); got {x01.dtype} on {x01.device}")
+                    f"({self.table.dtype}, {self.table.device}); got {x01.dtype} on {x01.device}"
+                )
             return True
         if not eligible:
             return False
@@ -373,19 +411,24 @@ class HashGrid(nn.Module):
         """
         _check_points(x01)
         if self.table.shape != (self.meta.n_entries, self.meta.n_features):
-            raise ValueError(f"HashGrid: table must be ({self.meta.n_entries}, {self.meta.n_features}) for this "
-                             f"config, got {tuple(self.table.shape)}")
+            raise ValueError(
+                f"HashGrid: table must be ({self.meta.n_entries}, {self.meta.n_features}) for this "
+                f"config, got {tuple(self.table.shape)}"
+            )
         lead = x01.shape[:-1]
         x = x01.reshape(-1, 3)
         if self.uses_fast_path(x):
-            out = _FastHashEncode.apply(x, self.table, self.level_offsets, self.level_resolutions,
-                                        self.level_is_dense, self.meta.table_size)
+            out = _FastHashEncode.apply(
+                x, self.table, self.level_offsets, self.level_resolutions, self.level_is_dense, self.meta.table_size
+            )
         else:
             out = encode_reference(self.table, x, self.meta)
         return out.reshape(*lead, self.n_output_dims)
 
     def extra_repr(self) -> str:
         m = self.meta
-        return (f"levels={m.n_levels}, features={m.n_features}, T=2^{self.cfg.log2_hashmap_size}, "
-                f"R={m.level_resolutions[0]}..{m.level_resolutions[-1]}, dense_levels={sum(m.level_is_dense)}, "
-                f"entries={m.n_entries}, backend={self.backend}")
+        return (
+            f"levels={m.n_levels}, features={m.n_features}, T=2^{self.cfg.log2_hashmap_size}, "
+            f"R={m.level_resolutions[0]}..{m.level_resolutions[-1]}, dense_levels={sum(m.level_is_dense)}, "
+            f"entries={m.n_entries}, backend={self.backend}"
+        )

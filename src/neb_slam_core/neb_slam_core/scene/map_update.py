@@ -46,7 +46,7 @@ from .block_map import BlockMap
 MAGIC = b"NEBU"
 FORMAT_VERSION = 1
 _HEADER = struct.Struct("<4sHHQqIIIII")  # the first 44 bytes; header_bytes says where the blocks start
-_HEADER_EXTRA = struct.Struct("<q")      # fields appended since: loop_stamp_ns
+_HEADER_EXTRA = struct.Struct("<q")  # fields appended since: loop_stamp_ns
 _BLOCK_HEAD = struct.Struct("<I3f")
 
 
@@ -80,8 +80,15 @@ class MapUpdate:
         return [b.block_id for b in self.blocks]
 
 
-def encode(block_map: BlockMap, block_ids, version: int, ack_stamp_ns: int, keyframe_stamps_ns,
-           keyframe_poses, loop_stamp_ns: int = -1) -> bytes:
+def encode(
+    block_map: BlockMap,
+    block_ids,
+    version: int,
+    ack_stamp_ns: int,
+    keyframe_stamps_ns,
+    keyframe_poses,
+    loop_stamp_ns: int = -1,
+) -> bytes:
     """The update carrying blocks ``block_ids`` of ``block_map``, its decoders and the keyframe poses
     ``(K, 4, 4)`` with their stamps ``(K,)``; ``loop_stamp_ns`` names the newest loop correction in it."""
     ids = sorted(int(i) for i in block_ids)
@@ -91,9 +98,21 @@ def encode(block_map: BlockMap, block_ids, version: int, ack_stamp_ns: int, keyf
         raise ValueError(f"{len(stamps)} keyframe stamps for {len(poses)} poses")
     decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().numpy()
     table_numel = block_map.blocks[0].grid.table.numel() if len(block_map) else 0
-    parts = [_HEADER.pack(MAGIC, FORMAT_VERSION, 0, version, ack_stamp_ns, len(ids), table_numel,
-                          decoders.size, len(stamps), _HEADER.size + _HEADER_EXTRA.size),
-             _HEADER_EXTRA.pack(loop_stamp_ns)]
+    parts = [
+        _HEADER.pack(
+            MAGIC,
+            FORMAT_VERSION,
+            0,
+            version,
+            ack_stamp_ns,
+            len(ids),
+            table_numel,
+            decoders.size,
+            len(stamps),
+            _HEADER.size + _HEADER_EXTRA.size,
+        ),
+        _HEADER_EXTRA.pack(loop_stamp_ns),
+    ]
     for i in ids:
         block = block_map.blocks[i]
         centre = block.centre.detach().cpu().numpy()
@@ -121,9 +140,11 @@ def decode(data) -> MapUpdate:
     block_bytes = _BLOCK_HEAD.size + 4 * table_numel
     expected = header_bytes + n_blocks * block_bytes + 4 * n_decoder + 8 * n_kf + 128 * n_kf
     if len(buf) != expected:
-        raise MapUpdateError(f"map update of {len(buf)} bytes, its header announces {expected} "
-                             f"({n_blocks} blocks of {table_numel} values, {n_decoder} decoder values, "
-                             f"{n_kf} keyframes)")
+        raise MapUpdateError(
+            f"map update of {len(buf)} bytes, its header announces {expected} "
+            f"({n_blocks} blocks of {table_numel} values, {n_decoder} decoder values, "
+            f"{n_kf} keyframes)"
+        )
     offset = header_bytes
     blocks = []
     for _ in range(n_blocks):
@@ -145,23 +166,31 @@ def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:
     the blocks it created. Keyframe poses are the caller's (they belong to its pose bookkeeping)."""
     n_decoder = sum(p.numel() for p in block_map.decoders.parameters())
     if update.decoders.size != n_decoder:
-        raise MapUpdateError(f"map update has {update.decoders.size} decoder values, this map's decoders have "
-                             f"{n_decoder} (different decoder config?)")
+        raise MapUpdateError(
+            f"map update has {update.decoders.size} decoder values, this map's decoders have "
+            f"{n_decoder} (different decoder config?)"
+        )
     created = []
     for state in sorted(update.blocks, key=lambda b: b.block_id):
         if state.block_id > len(block_map):
-            raise MapUpdateError(f"map update has block {state.block_id}, but this map has only "
-                                 f"{len(block_map)} blocks (an update was lost)")
+            raise MapUpdateError(
+                f"map update has block {state.block_id}, but this map has only "
+                f"{len(block_map)} blocks (an update was lost)"
+            )
         if state.block_id == len(block_map):
             block_map.add_block(torch.from_numpy(state.centre_world.copy()))
             created.append(state.block_id)
         block = block_map.blocks[state.block_id]
         if not np.allclose(block.centre.detach().cpu().numpy(), state.centre_world, atol=1e-6):
-            raise MapUpdateError(f"map update moves block {state.block_id} from {block.centre.tolist()} to "
-                                 f"{state.centre_world.tolist()}: the maps diverged")
+            raise MapUpdateError(
+                f"map update moves block {state.block_id} from {block.centre.tolist()} to "
+                f"{state.centre_world.tolist()}: the maps diverged"
+            )
         if state.table.size != block.grid.table.numel():
-            raise MapUpdateError(f"map update block {state.block_id} has {state.table.size} table values, this "
-                                 f"map's blocks have {block.grid.table.numel()} (different grid config?)")
+            raise MapUpdateError(
+                f"map update block {state.block_id} has {state.table.size} table values, this "
+                f"map's blocks have {block.grid.table.numel()} (different grid config?)"
+            )
         with torch.no_grad():
             block.grid.table.copy_(torch.from_numpy(state.table.copy()).view_as(block.grid.table))
     with torch.no_grad():

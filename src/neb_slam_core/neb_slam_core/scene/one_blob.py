@@ -71,8 +71,9 @@ class _FastOneBlob(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: Tensor):
         (x,) = ctx.saved_tensors
-        grad_x = _ext.load_map_kernels().one_blob_backward(grad_out.to(x.dtype).contiguous(), x, ctx.n_bins,
-                                                           ctx.period_m)
+        grad_x = _ext.load_map_kernels().one_blob_backward(
+            grad_out.to(x.dtype).contiguous(), x, ctx.n_bins, ctx.period_m
+        )
         return grad_x, None, None
 
 
@@ -97,8 +98,9 @@ class OneBlob(torch.nn.Module):
     def uses_fast_path(self, points: Tensor) -> bool:
         """Whether :meth:`forward` on ``points`` runs the C++ path (may load the kernels)."""
         eligible = points.device.type == "cpu" and points.dtype in FAST_DTYPES
-        return _ext.use_fast_path(self.backend, eligible, "OneBlob",
-                                  f"CPU float32/float64 points; got {points.dtype} on {points.device}")
+        return _ext.use_fast_path(
+            self.backend, eligible, "OneBlob", f"CPU float32/float64 points; got {points.dtype} on {points.device}"
+        )
 
     def with_slopes(self, points_world: Tensor) -> tuple[Tensor, Tensor]:
         """``(N, 3)`` points -> codes ``(N, 3K)`` and slopes ``(N, 3, K)`` (:func:`encode_with_slopes`)."""

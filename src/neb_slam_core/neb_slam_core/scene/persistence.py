@@ -16,8 +16,12 @@ MAP_FORMAT = "neb_slam_map"
 MAP_FORMAT_VERSION = 1
 
 
-def save_map(block_map: BlockMap, path: str | Path, extra: dict | None = None,
-             block_keyframes: Mapping[int, Sequence[int]] | None = None) -> Path:
+def save_map(
+    block_map: BlockMap,
+    path: str | Path,
+    extra: dict | None = None,
+    block_keyframes: Mapping[int, Sequence[int]] | None = None,
+) -> Path:
     """Write the map to ``path`` (a torch file). ``extra`` is stored alongside (e.g. keyframe poses).
 
     Each block's entry holds ``keyframe_ids``: its keyframes in ``block_keyframes`` (block id -> keyframe
@@ -40,8 +44,12 @@ def save_map(block_map: BlockMap, path: str | Path, extra: dict | None = None,
         },
         "seed": block_map.seed,
         "blocks": [
-            {"id": b.block_id, "centre": b.centre.detach().cpu(), "table": b.grid.table.detach().cpu(),
-             "keyframe_ids": [int(k) for k in block_keyframes.get(b.block_id, ())]}
+            {
+                "id": b.block_id,
+                "centre": b.centre.detach().cpu(),
+                "table": b.grid.table.detach().cpu(),
+                "keyframe_ids": [int(k) for k in block_keyframes.get(b.block_id, ())],
+            }
             for b in block_map.blocks
         ],
         "decoders": {k: v.detach().cpu() for k, v in block_map.decoders.state_dict().items()},
@@ -53,8 +61,7 @@ def save_map(block_map: BlockMap, path: str | Path, extra: dict | None = None,
     return path
 
 
-def load_map(path: str | Path, device: str | torch.device = "cpu",
-             grid_backend: str = "auto") -> tuple[BlockMap, dict]:
+def load_map(path: str | Path, device: str | torch.device = "cpu", grid_backend: str = "auto") -> tuple[BlockMap, dict]:
     """Read a map written by :func:`save_map`; returns the map and the stored ``extra`` (the blocks'
     ``keyframe_ids`` are not read: see :func:`save_map`)."""
     path = Path(path)
@@ -67,18 +74,27 @@ def load_map(path: str | Path, device: str | torch.device = "cpu",
     if not isinstance(payload, dict) or payload.get("format") != MAP_FORMAT:
         raise DatasetError(path, f"not a NeB-SLAM map (expected format {MAP_FORMAT!r})")
     if payload.get("version") != MAP_FORMAT_VERSION:
-        raise DatasetError(path, f"map format version {payload.get('version')} is not supported "
-                                 f"(this software reads version {MAP_FORMAT_VERSION})")
+        raise DatasetError(
+            path,
+            f"map format version {payload.get('version')} is not supported "
+            f"(this software reads version {MAP_FORMAT_VERSION})",
+        )
     cfg = payload["config"]
-    block_map = BlockMap(config_from_dict(BlockConfig, cfg["block"], "block"),
-                         config_from_dict(OneBlobConfig, cfg["one_blob"], "one_blob"),
-                         config_from_dict(DecoderConfig, cfg["decoder"], "decoder"),
-                         grid_backend=grid_backend, seed=payload["seed"]).to(device)
+    block_map = BlockMap(
+        config_from_dict(BlockConfig, cfg["block"], "block"),
+        config_from_dict(OneBlobConfig, cfg["one_blob"], "one_blob"),
+        config_from_dict(DecoderConfig, cfg["decoder"], "decoder"),
+        grid_backend=grid_backend,
+        seed=payload["seed"],
+    ).to(device)
     for entry in payload["blocks"]:
         block = block_map.add_block(entry["centre"])
         if block.grid.table.shape != entry["table"].shape:
-            raise DatasetError(path, f"block {entry['id']}: table shape {tuple(entry['table'].shape)} does not match "
-                                     f"the stored config ({tuple(block.grid.table.shape)})")
+            raise DatasetError(
+                path,
+                f"block {entry['id']}: table shape {tuple(entry['table'].shape)} does not match "
+                f"the stored config ({tuple(block.grid.table.shape)})",
+            )
         with torch.no_grad():
             block.grid.table.copy_(entry["table"])
     block_map.decoders.load_state_dict(payload["decoders"])

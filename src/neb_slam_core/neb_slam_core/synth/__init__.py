@@ -17,7 +17,20 @@ from .scene import SceneSpec, SyntheticScene, build_scene
 from .trajectory import TrajectorySpec, make_trajectory
 
 __all__ = [
-    "CameraSpec", "DepthNoiseSpec", "PRESETS", "RenderedView", "Renderer", "SceneSpec", "SyntheticScene",
-    "TrajectorySpec", "apply_depth_noise", "build_scene", "build_sequence", "generate", "get_preset",
-    "make_trajectory", "preset_names", "resolve_spec",
+    "CameraSpec",
+    "DepthNoiseSpec",
+    "PRESETS",
+    "RenderedView",
+    "Renderer",
+    "SceneSpec",
+    "SyntheticScene",
+    "TrajectorySpec",
+    "apply_depth_noise",
+    "build_scene",
+    "build_sequence",
+    "generate",
+    "get_preset",
+    "make_trajectory",
+    "preset_names",
+    "resolve_spec",
 ]

@@ -61,9 +61,14 @@ class SyntheticSequence:
         return self.scene.spec
 
 
-def resolve_spec(preset_or_spec: SceneSpec | str = "default", *, n_frames: int | None = None,
-                 size: tuple[int, int] | None = None, seed: int | None = None,
-                 noise: bool | None = None) -> SceneSpec:
+def resolve_spec(
+    preset_or_spec: SceneSpec | str = "default",
+    *,
+    n_frames: int | None = None,
+    size: tuple[int, int] | None = None,
+    seed: int | None = None,
+    noise: bool | None = None,
+) -> SceneSpec:
     """A preset name or spec with the given overrides applied."""
     spec = get_preset(preset_or_spec) if isinstance(preset_or_spec, str) else preset_or_spec
     spec = with_overrides(spec, n_frames=n_frames, size=size, seed=seed, noise=noise)
@@ -81,8 +86,10 @@ def build_sequence(spec: SceneSpec) -> SyntheticSequence:
     clearance = camera_clearance(scene, traj.positions)
     if clearance.min() < spec.trajectory.min_clearance_m:
         i = int(np.argmin(clearance))
-        raise ConfigError(f"synthetic scene {spec.name!r} seed {spec.seed}: frame {i} is {clearance[i]:.3f} m from a "
-                          f"surface, less than the required {spec.trajectory.min_clearance_m} m (layout too tight)")
+        raise ConfigError(
+            f"synthetic scene {spec.name!r} seed {spec.seed}: frame {i} is {clearance[i]:.3f} m from a "
+            f"surface, less than the required {spec.trajectory.min_clearance_m} m (layout too tight)"
+        )
     return SyntheticSequence(scene, curve, traj)
 
 
@@ -109,9 +116,17 @@ def trajectory_stats(traj: Trajectory) -> dict:
     }
 
 
-def generate(preset_or_spec: SceneSpec | str = "default", out_dir: str | Path = "synth", *,
-             n_frames: int | None = None, size: tuple[int, int] | None = None, seed: int | None = None,
-             noise: bool | None = None, force: bool = False, progress: bool = True) -> Path:
+def generate(
+    preset_or_spec: SceneSpec | str = "default",
+    out_dir: str | Path = "synth",
+    *,
+    n_frames: int | None = None,
+    size: tuple[int, int] | None = None,
+    seed: int | None = None,
+    noise: bool | None = None,
+    force: bool = False,
+    progress: bool = True,
+) -> Path:
     """Render a synthetic sequence into ``out_dir`` (TUM layout, see the module docstring).
 
     When ``out_dir`` already holds a complete sequence made with the same options, nothing is done
@@ -130,8 +145,12 @@ def generate(preset_or_spec: SceneSpec | str = "default", out_dir: str | Path = 
     # Marks the folder as ours while it is written: an interrupted run (Ctrl-C, a crash) leaves a folder
     # the next run recognises, regenerates and never takes for complete (is_complete wants the full
     # summary written last), instead of refusing it as someone else's non-empty folder.
-    (out / SCENE_FILE).write_text(json.dumps({"format": FORMAT_NAME, "version": FORMAT_VERSION,
-                                              "complete": False, "options": spec.to_dict()}, indent=2) + "\n")
+    (out / SCENE_FILE).write_text(
+        json.dumps(
+            {"format": FORMAT_NAME, "version": FORMAT_VERSION, "complete": False, "options": spec.to_dict()}, indent=2
+        )
+        + "\n"
+    )
 
     seq = build_sequence(spec)
     intr = spec.camera.intrinsics()
@@ -144,7 +163,9 @@ def generate(preset_or_spec: SceneSpec | str = "default", out_dir: str | Path = 
         view = renderer.render(seq.trajectory.poses[i])
         depth = view.depth_m
         if spec.noise.enabled:
-            depth = apply_depth_noise(depth, view.cos_incidence, spec.noise, np.random.default_rng([spec.seed, i, 0xD3]))
+            depth = apply_depth_noise(
+                depth, view.cos_incidence, spec.noise, np.random.default_rng([spec.seed, i, 0xD3])
+            )
         name = stamp_ns_to_text(int(stamps[i]))
         _write_png(out / "rgb" / f"{name}.png", cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
         _write_png(out / "depth" / f"{name}.png", depth_to_png16(depth))
@@ -153,8 +174,11 @@ def generate(preset_or_spec: SceneSpec | str = "default", out_dir: str | Path = 
     header = f"# {FORMAT_NAME} scene '{spec.name}' seed {spec.seed}\n"
     (out / "rgb.txt").write_text(header + "# timestamp filename\n" + "".join(f"{n} rgb/{n}.png\n" for n in names))
     (out / "depth.txt").write_text(header + "# timestamp filename\n" + "".join(f"{n} depth/{n}.png\n" for n in names))
-    write_tum_trajectory(out / "groundtruth.txt", seq.trajectory,
-                         header=f"{FORMAT_NAME} scene '{spec.name}' seed {spec.seed}: T_world_cam, OpenCV camera axes, z-up world")
+    write_tum_trajectory(
+        out / "groundtruth.txt",
+        seq.trajectory,
+        header=f"{FORMAT_NAME} scene '{spec.name}' seed {spec.seed}: T_world_cam, OpenCV camera axes, z-up world",
+    )
     write_intrinsics_json(out / INTRINSICS_FILE, intr)
     export_mesh(seq.scene, out / MESH_FILE, renderer)
     (out / SCENE_FILE).write_text(json.dumps(scene_summary(seq), indent=2) + "\n")
@@ -172,8 +196,11 @@ def scene_summary(seq: SyntheticSequence) -> dict:
         "preset": spec.name,
         "seed": spec.seed,
         "options": spec.to_dict(),
-        "bounds_m": {"min": [round(float(x), 6) for x in b[0]], "max": [round(float(x), 6) for x in b[1]],
-                     "size": [round(float(x), 6) for x in b[1] - b[0]]},
+        "bounds_m": {
+            "min": [round(float(x), 6) for x in b[0]],
+            "max": [round(float(x), 6) for x in b[1]],
+            "size": [round(float(x), 6) for x in b[1] - b[0]],
+        },
         "n_frames": len(seq.trajectory),
         "image_size": [intr.width, intr.height],
         "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy},
@@ -182,14 +209,23 @@ def scene_summary(seq: SyntheticSequence) -> dict:
             "poses": "groundtruth.txt holds T_world_cam with OpenCV camera axes (x right, y down, z forward)",
             "pixels": "integer (u, v) are pixel centres; the ray of a pixel is K^-1 [u, v, 1]",
             "depth": f"z along the optical axis, PNG value = metres * {DEPTH_SCALE:g}, 0 = none, "
-                     f"valid range {spec.camera.min_depth_m}..{spec.camera.max_depth_m} m",
+            f"valid range {spec.camera.min_depth_m}..{spec.camera.max_depth_m} m",
         },
-        "trajectory": {"loop": bool(scene.plan.route_closed), **trajectory_stats(seq.trajectory),
-                       "min_clearance_m": round(float(camera_clearance(scene, seq.trajectory.positions).min()), 4)},
-        "mesh": {"file": MESH_FILE, "render_faces": int(len(scene.mesh.faces)), "materials": len(scene.materials),
-                 "spaces": [{"name": s.name, "kind": s.kind, "rect_xy": [s.rect.x0, s.rect.y0, s.rect.x1, s.rect.y1]}
-                            for s in scene.plan.spaces],
-                 "wall_height_m": scene.plan.wall_height_m},
+        "trajectory": {
+            "loop": bool(scene.plan.route_closed),
+            **trajectory_stats(seq.trajectory),
+            "min_clearance_m": round(float(camera_clearance(scene, seq.trajectory.positions).min()), 4),
+        },
+        "mesh": {
+            "file": MESH_FILE,
+            "render_faces": int(len(scene.mesh.faces)),
+            "materials": len(scene.materials),
+            "spaces": [
+                {"name": s.name, "kind": s.kind, "rect_xy": [s.rect.x0, s.rect.y0, s.rect.x1, s.rect.y1]}
+                for s in scene.plan.spaces
+            ],
+            "wall_height_m": scene.plan.wall_height_m,
+        },
     }
 
 
@@ -219,8 +255,11 @@ def _prepare_folder(out: Path, force: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
     ours = (out / SCENE_FILE).is_file()
     if any(out.iterdir()) and not ours and not force:
-        raise DatasetError(out, "folder is not empty and holds no synthetic scene (scene.json); "
-                                "choose an empty or new folder, or pass --force to overwrite its TUM files")
+        raise DatasetError(
+            out,
+            "folder is not empty and holds no synthetic scene (scene.json); "
+            "choose an empty or new folder, or pass --force to overwrite its TUM files",
+        )
     # scene.json first: an interrupted rewrite must not look complete
     for f in (SCENE_FILE,) + _OUTPUT_FILES:
         (out / f).unlink(missing_ok=True)
@@ -248,13 +287,14 @@ def export_mesh(scene: SyntheticScene, path: Path, renderer: Renderer) -> None:
     sees it (view-independent). Quads of different surfaces share no vertices, so colours do not
     bleed across surfaces. The geometry is exactly the render mesh's surface.
     """
-    v, f, idx = trimesh.remesh.subdivide_to_size(scene.mesh.vertices, scene.mesh.faces, MESH_EXPORT_EDGE_M,
-                                                 max_iter=12, return_index=True)
+    v, f, idx = trimesh.remesh.subdivide_to_size(
+        scene.mesh.vertices, scene.mesh.faces, MESH_EXPORT_EDGE_M, max_iter=12, return_index=True
+    )
     v, f = np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
-    vertex_face = np.zeros(len(v), dtype=np.int64)             # the source face of each vertex
+    vertex_face = np.zeros(len(v), dtype=np.int64)  # the source face of each vertex
     vertex_face[f.ravel()] = np.repeat(np.asarray(idx, dtype=np.int64), 3)
     normals = np.asarray(scene.mesh.face_normals)[vertex_face]
-    color = renderer.shade(vertex_face, v, -normals)           # seen from the side the normal points to
+    color = renderer.shade(vertex_face, v, -normals)  # seen from the side the normal points to
     rgba = np.concatenate([np.clip(np.round(color * 255), 0, 255), np.full((len(v), 1), 255)], axis=1).astype(np.uint8)
     out = trimesh.Trimesh(vertices=v, faces=f, vertex_colors=rgba, process=False)
     path.write_bytes(out.export(file_type="ply"))

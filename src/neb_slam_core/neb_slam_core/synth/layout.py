@@ -60,9 +60,13 @@ class Rect:
         dy = np.maximum(np.maximum(self.y0 - p[:, 1], p[:, 1] - self.y1), 0.0)
         return np.hypot(dx, dy)
 
-    def overlaps(self, other: "Rect", margin: float = 0.0) -> bool:
-        return not (self.x1 + margin <= other.x0 or other.x1 + margin <= self.x0
-                    or self.y1 + margin <= other.y0 or other.y1 + margin <= self.y0)
+    def overlaps(self, other: Rect, margin: float = 0.0) -> bool:
+        return not (
+            self.x1 + margin <= other.x0
+            or other.x1 + margin <= self.x0
+            or self.y1 + margin <= other.y0
+            or other.y1 + margin <= self.y0
+        )
 
 
 @dataclass(frozen=True)
@@ -98,8 +102,12 @@ class FloorPlan:
     @property
     def bounds_xy(self) -> Rect:
         """The bounding rectangle of all free space."""
-        return Rect(min(s.rect.x0 for s in self.spaces), min(s.rect.y0 for s in self.spaces),
-                    max(s.rect.x1 for s in self.spaces), max(s.rect.y1 for s in self.spaces))
+        return Rect(
+            min(s.rect.x0 for s in self.spaces),
+            min(s.rect.y0 for s in self.spaces),
+            max(s.rect.x1 for s in self.spaces),
+            max(s.rect.y1 for s in self.spaces),
+        )
 
     def spaces_of(self, kind: str) -> list[Space]:
         return [s for s in self.spaces if s.kind == kind]
@@ -127,12 +135,16 @@ class LayoutSpec:
         if self.kind not in ("rooms", "room", "corridor"):
             raise ConfigError(f"LayoutSpec.kind: expected 'rooms', 'room' or 'corridor', got {self.kind!r}")
         if self.kind == "rooms" and not 2 <= self.loop_columns <= self.n_columns:
-            raise ConfigError(f"LayoutSpec.loop_columns: expected 2..n_columns ({self.n_columns}), got {self.loop_columns}")
+            raise ConfigError(
+                f"LayoutSpec.loop_columns: expected 2..n_columns ({self.n_columns}), got {self.loop_columns}"
+            )
         if self.n_columns < 1:
             raise ConfigError(f"LayoutSpec.n_columns: expected >= 1, got {self.n_columns}")
         if self.door_width_m[0] < 1.2:
-            raise ConfigError("LayoutSpec.door_width_m: doorways narrower than 1.2 m leave the camera "
-                              "less than 0.4 m from the door frame")
+            raise ConfigError(
+                "LayoutSpec.door_width_m: doorways narrower than 1.2 m leave the camera "
+                "less than 0.4 m from the door frame"
+            )
         if self.door_height_m >= self.wall_height_m[0]:
             raise ConfigError("LayoutSpec.door_height_m must be below the lowest wall height")
 
@@ -159,12 +171,12 @@ class _TwoRowPlan:
     """Geometry shared by the 'rooms' and 'corridor' layouts: rooms south and north of a corridor."""
 
     spaces: list[Space]
-    columns: list[tuple[float, float]]      # x extent of each column
-    door_x: list[float]                      # corridor doorway centre per column (same both sides)
+    columns: list[tuple[float, float]]  # x extent of each column
+    door_x: list[float]  # corridor doorway centre per column (same both sides)
     south_y: tuple[float, float]
     corridor_y: tuple[float, float]
     north_y: tuple[float, float]
-    inner_door_y_south: list[float]          # y of the doorway between column i and i+1, south row
+    inner_door_y_south: list[float]  # y of the doorway between column i and i+1, south row
     inner_door_y_north: list[float]
     height: float
 
@@ -193,8 +205,12 @@ def _two_rows(spec: LayoutSpec, rng: np.random.Generator, inner_doors: bool) -> 
         dw = _u(rng, spec.door_width_m)
         dx = snap(0.5 * (x0 + x1) + rng.uniform(-0.3, 0.3))
         door_x.append(dx)
-        spaces.append(Space(f"door_s{i}_corridor", "door", Rect(snap(dx - dw / 2), south_y[1], snap(dx + dw / 2), corridor_y[0])))
-        spaces.append(Space(f"door_n{i}_corridor", "door", Rect(snap(dx - dw / 2), corridor_y[1], snap(dx + dw / 2), north_y[0])))
+        spaces.append(
+            Space(f"door_s{i}_corridor", "door", Rect(snap(dx - dw / 2), south_y[1], snap(dx + dw / 2), corridor_y[0]))
+        )
+        spaces.append(
+            Space(f"door_n{i}_corridor", "door", Rect(snap(dx - dw / 2), corridor_y[1], snap(dx + dw / 2), north_y[0]))
+        )
         if inner_doors and i + 1 < len(columns):
             for row, (y0, y1), store in (("s", south_y, inner_s), ("n", north_y, inner_n)):
                 dw = _u(rng, spec.door_width_m)
@@ -204,15 +220,20 @@ def _two_rows(spec: LayoutSpec, rng: np.random.Generator, inner_doors: bool) -> 
                 off = float(rng.uniform(1.5, max(1.5, depth - 1.5)))
                 dy = snap(far + off if row == "s" else far - off)
                 store.append(dy)
-                spaces.append(Space(f"door_{row}{i}_{row}{i + 1}", "door",
-                                    Rect(x1, snap(dy - dw / 2), columns[i + 1][0], snap(dy + dw / 2))))
+                spaces.append(
+                    Space(
+                        f"door_{row}{i}_{row}{i + 1}",
+                        "door",
+                        Rect(x1, snap(dy - dw / 2), columns[i + 1][0], snap(dy + dw / 2)),
+                    )
+                )
     return _TwoRowPlan(spaces, columns, door_x, south_y, corridor_y, north_y, inner_s, inner_n, height)
 
 
 def _rooms_plan(spec: LayoutSpec, rng: np.random.Generator) -> FloorPlan:
     p = _two_rows(spec, rng, inner_doors=True)
     t = spec.wall_thickness_m
-    a = 0.65                                    # waypoint distance before/after a doorway
+    a = 0.65  # waypoint distance before/after a doorway
     yc = 0.5 * (p.corridor_y[0] + p.corridor_y[1])
     k = spec.loop_columns
     x0, xk = p.door_x[0], p.door_x[k - 1]
@@ -258,5 +279,11 @@ def _single_room_plan(spec: LayoutSpec, rng: np.random.Generator) -> FloorPlan:
     n = 8
     ang = np.arange(n) * (2 * np.pi / n)
     route = np.stack([cx + 0.55 * np.cos(ang), cy - 0.35 + 0.35 * np.sin(ang)], axis=1)
-    return FloorPlan([Space("room_s0", "room", room)], _u(rng, spec.wall_height_m), spec.door_height_m,
-                     route, True, fixed_yaw_deg=90.0)
+    return FloorPlan(
+        [Space("room_s0", "room", room)],
+        _u(rng, spec.wall_height_m),
+        spec.door_height_m,
+        route,
+        True,
+        fixed_yaw_deg=90.0,
+    )

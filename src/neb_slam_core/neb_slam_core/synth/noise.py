@@ -51,8 +51,10 @@ class DepthNoiseSpec:
             if not 0.0 <= p <= 1.0:
                 raise ConfigError(f"DepthNoiseSpec.{name}: expected a probability in [0, 1], got {p}")
         if not 0.0 <= self.grazing_start_deg < self.grazing_full_deg <= 90.0:
-            raise ConfigError("DepthNoiseSpec: expected 0 <= grazing_start_deg < grazing_full_deg <= 90, got "
-                              f"{self.grazing_start_deg}, {self.grazing_full_deg}")
+            raise ConfigError(
+                "DepthNoiseSpec: expected 0 <= grazing_start_deg < grazing_full_deg <= 90, got "
+                f"{self.grazing_start_deg}, {self.grazing_full_deg}"
+            )
         if self.axial_a_m < 0 or self.axial_b_per_m < 0 or self.disparity_step_per_m < 0:
             raise ConfigError("DepthNoiseSpec: noise magnitudes must be >= 0")
 
@@ -92,8 +94,9 @@ def depth_edges(depth_m: np.ndarray, jump_rel: float) -> np.ndarray:
     return edge
 
 
-def apply_depth_noise(depth_m: np.ndarray, cos_incidence: np.ndarray, spec: DepthNoiseSpec,
-                      rng: np.random.Generator) -> np.ndarray:
+def apply_depth_noise(
+    depth_m: np.ndarray, cos_incidence: np.ndarray, spec: DepthNoiseSpec, rng: np.random.Generator
+) -> np.ndarray:
     """The model above applied to a clean depth image.
 
     Args:

@@ -37,7 +37,9 @@ PRESETS: dict[str, SceneSpec] = {
         name="small",
         layout=LayoutSpec(kind="room", room_width_m=(3.9, 4.1), room_depth_m=(3.9, 4.1), wall_height_m=(2.6, 2.6)),
         camera=CameraSpec(width=96, height=72),
-        trajectory=TrajectorySpec(n_frames=60, yaw_amplitude_deg=25.0, pitch_amplitude_deg=4.0, height_amplitude_m=0.05),
+        trajectory=TrajectorySpec(
+            n_frames=60, yaw_amplitude_deg=25.0, pitch_amplitude_deg=4.0, height_amplitude_m=0.05
+        ),
         furniture_per_room=(5, 7),
         posters_per_room=(4, 7),
     ),
@@ -62,8 +64,14 @@ def get_preset(name: str) -> SceneSpec:
         raise ConfigError(f"unknown synthetic scene preset {name!r}; choose one of: {', '.join(PRESETS)}") from None
 
 
-def with_overrides(spec: SceneSpec, *, n_frames: int | None = None, size: tuple[int, int] | None = None,
-                   seed: int | None = None, noise: bool | None = None) -> SceneSpec:
+def with_overrides(
+    spec: SceneSpec,
+    *,
+    n_frames: int | None = None,
+    size: tuple[int, int] | None = None,
+    seed: int | None = None,
+    noise: bool | None = None,
+) -> SceneSpec:
     """``spec`` with the command-line options applied (None keeps the spec's value)."""
     if n_frames is not None:
         spec = replace(spec, trajectory=replace(spec.trajectory, n_frames=int(n_frames)))

@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import trimesh
@@ -66,7 +66,9 @@ class CameraSpec:
         if not 10.0 <= self.fov_h_deg <= 150.0:
             raise ConfigError(f"CameraSpec.fov_h_deg: expected 10..150 degrees, got {self.fov_h_deg}")
         if not 0.0 < self.min_depth_m < self.max_depth_m:
-            raise ConfigError(f"CameraSpec: expected 0 < min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}")
+            raise ConfigError(
+                f"CameraSpec: expected 0 < min_depth_m < max_depth_m, got {self.min_depth_m}, {self.max_depth_m}"
+            )
         if self.max_depth_m > 13.0:
             raise ConfigError("CameraSpec.max_depth_m: 16-bit depth PNGs at 5000 per metre hold at most 13.1 m")
         if not 1 <= self.supersample <= 4:
@@ -100,7 +102,9 @@ def pixel_rays(intrinsics: Intrinsics, offset_u: float = 0.0, offset_v: float = 
     """Camera-frame rays ``K^-1 [u + offset_u, v + offset_v, 1]`` of every pixel, row-major -> ``(H*W, 3)``
     float64 with z = 1 (so the ray parameter of a hit is its z-depth)."""
     k = intrinsics
-    u, v = np.meshgrid(np.arange(k.width, dtype=np.float64) + offset_u, np.arange(k.height, dtype=np.float64) + offset_v)
+    u, v = np.meshgrid(
+        np.arange(k.width, dtype=np.float64) + offset_u, np.arange(k.height, dtype=np.float64) + offset_v
+    )
     return np.stack([(u.ravel() - k.cx) / k.fx, (v.ravel() - k.cy) / k.fy, np.ones(u.size)], axis=1)
 
 
@@ -109,13 +113,18 @@ def make_intersector(mesh: trimesh.Trimesh):
     global _warned_fallback
     try:
         from trimesh.ray.ray_pyembree import RayMeshIntersector
+
         return RayMeshIntersector(mesh), "embree"
     except ImportError as exc:
         if not _warned_fallback:
-            log.warning("Embree ray casting unavailable (%s); falling back to trimesh's pure-Python intersector, "
-                        "which is much slower (pip install embreex)", exc)
+            log.warning(
+                "Embree ray casting unavailable (%s); falling back to trimesh's pure-Python intersector, "
+                "which is much slower (pip install embreex)",
+                exc,
+            )
             _warned_fallback = True
         from trimesh.ray.ray_triangle import RayMeshIntersector
+
         return RayMeshIntersector(mesh), "trimesh"
 
 
@@ -133,10 +142,19 @@ class Renderer:
         ambient: the share of light that does not depend on the normal.
     """
 
-    def __init__(self, mesh: trimesh.Trimesh, face_material: np.ndarray, materials: Sequence[Material],
-                 intrinsics: Intrinsics, *, min_depth_m: float = 0.1, max_depth_m: float = 10.0,
-                 supersample: int = 1, light_dir: Sequence[float] = DEFAULT_LIGHT_DIR,
-                 ambient: float = DEFAULT_AMBIENT):
+    def __init__(
+        self,
+        mesh: trimesh.Trimesh,
+        face_material: np.ndarray,
+        materials: Sequence[Material],
+        intrinsics: Intrinsics,
+        *,
+        min_depth_m: float = 0.1,
+        max_depth_m: float = 10.0,
+        supersample: int = 1,
+        light_dir: Sequence[float] = DEFAULT_LIGHT_DIR,
+        ambient: float = DEFAULT_AMBIENT,
+    ):
         face_material = np.asarray(face_material)
         if face_material.shape != (len(mesh.faces),):
             raise ValueError(f"Renderer: face_material has shape {face_material.shape}, expected ({len(mesh.faces)},)")
@@ -154,16 +172,23 @@ class Renderer:
         self._plane_d = np.einsum("ij,ij->i", self._normals, np.asarray(mesh.triangles[:, 0, :], dtype=np.float64))
         # Lambertian factor of each face seen from its front (normal side) and from its back
         n_dot_l = self._normals @ self.light_dir
-        self._light = np.stack([self.ambient + (1.0 - self.ambient) * np.maximum(n_dot_l, 0.0),
-                                self.ambient + (1.0 - self.ambient) * np.maximum(-n_dot_l, 0.0)], axis=1)
+        self._light = np.stack(
+            [
+                self.ambient + (1.0 - self.ambient) * np.maximum(n_dot_l, 0.0),
+                self.ambient + (1.0 - self.ambient) * np.maximum(-n_dot_l, 0.0),
+            ],
+            axis=1,
+        )
         s = self.supersample
         offsets = [(i + 0.5) / s - 0.5 for i in range(s)] if s > 1 else []
         # ray bundle: pixel centres first (depth), then the s x s colour samples of every pixel
         self._n_pixels = intrinsics.width * intrinsics.height
-        self._rays_cam = np.concatenate([pixel_rays(intrinsics)] + [pixel_rays(intrinsics, ou, ov) for ov in offsets for ou in offsets])
+        self._rays_cam = np.concatenate(
+            [pixel_rays(intrinsics)] + [pixel_rays(intrinsics, ou, ov) for ov in offsets for ou in offsets]
+        )
 
     @classmethod
-    def for_scene(cls, scene, intrinsics: Intrinsics | None = None, **kwargs) -> "Renderer":
+    def for_scene(cls, scene, intrinsics: Intrinsics | None = None, **kwargs) -> Renderer:
         """A renderer of a :class:`~neb_slam_core.synth.scene.SyntheticScene` with its camera spec."""
         cam = scene.spec.camera
         kwargs.setdefault("supersample", cam.supersample)
@@ -171,7 +196,9 @@ class Renderer:
         kwargs.setdefault("max_depth_m", cam.max_depth_m)
         return cls(scene.mesh, scene.face_material, scene.materials, intrinsics or cam.intrinsics(), **kwargs)
 
-    def cast(self, T_world_cam: np.ndarray, rays_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def cast(
+        self, T_world_cam: np.ndarray, rays_cam: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Cast camera-frame rays ``(N, 3)`` (z = 1) from pose ``T_world_cam``.
 
         Returns the hit triangle ``(N,)`` (-1: none), the z-depth ``(N,)`` (0 where none), the world hit
@@ -232,5 +259,9 @@ class Renderer:
         d = dirs[:n_px][hit]
         cos_inc[hit] = np.abs(np.einsum("ij,ij->i", self._normals[tri[hit]], d)) / np.linalg.norm(d, axis=1)
         rgb = np.clip(np.round(color * 255.0), 0, 255).astype(np.uint8)
-        return RenderedView(rgb.reshape(k.height, k.width, 3), depth.astype(np.float32).reshape(k.height, k.width),
-                            cos_inc.astype(np.float32).reshape(k.height, k.width), tri.reshape(k.height, k.width))
+        return RenderedView(
+            rgb.reshape(k.height, k.width, 3),
+            depth.astype(np.float32).reshape(k.height, k.width),
+            cos_inc.astype(np.float32).reshape(k.height, k.width),
+            tri.reshape(k.height, k.width),
+        )

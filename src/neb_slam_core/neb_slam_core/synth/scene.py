@@ -122,8 +122,9 @@ class _MeshBuilder:
         self.quads.append(np.asarray(corners, dtype=np.float64))
         self.quad_material.append(material)
 
-    def wall_quad(self, axis: int, coord: float, lo: float, hi: float, z0: float, z1: float,
-                  normal_sign: int, material: int) -> None:
+    def wall_quad(
+        self, axis: int, coord: float, lo: float, hi: float, z0: float, z1: float, normal_sign: int, material: int
+    ) -> None:
         """A vertical quad in the plane ``x = coord`` (axis 0) or ``y = coord`` (axis 1), spanning
         ``[lo, hi]`` along the other horizontal axis and ``[z0, z1]`` in height, facing ``normal_sign``."""
         if axis == 0:
@@ -154,11 +155,12 @@ class _MeshBuilder:
         self.wall_quad(1, r.y0, r.x0, r.x1, z0, z1, -1, material)
 
     def build(self) -> tuple[trimesh.Trimesh, np.ndarray]:
-        q = np.stack(self.quads)                                   # (Q, 4, 3)
+        q = np.stack(self.quads)  # (Q, 4, 3)
         vertices = q.reshape(-1, 3)
         base = np.arange(len(q)) * 4
-        faces = np.concatenate([np.stack([base, base + 1, base + 2], 1),
-                                np.stack([base, base + 2, base + 3], 1)], axis=1).reshape(-1, 3)
+        faces = np.concatenate(
+            [np.stack([base, base + 1, base + 2], 1), np.stack([base, base + 2, base + 3], 1)], axis=1
+        ).reshape(-1, 3)
         mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
         face_material = np.repeat(np.asarray(self.quad_material, dtype=np.int32), 2)
         return mesh, face_material
@@ -180,7 +182,7 @@ class _WallRun:
 def _wall_runs(plan: FloorPlan) -> list[_WallRun]:
     """Boundaries between free and solid cells of the rasterised plan, merged into straight runs."""
     b = plan.bounds_xy
-    ox, oy = b.x0 - GRID_M, b.y0 - GRID_M                 # one solid cell of margin on each side
+    ox, oy = b.x0 - GRID_M, b.y0 - GRID_M  # one solid cell of margin on each side
     nx = int(round((b.x1 - b.x0) / GRID_M)) + 2
     ny = int(round((b.y1 - b.y0) / GRID_M)) + 2
     label = np.full((nx, ny), -1, dtype=np.int64)
@@ -191,9 +193,9 @@ def _wall_runs(plan: FloorPlan) -> list[_WallRun]:
 
     runs: list[_WallRun] = []
     for axis in (0, 1):
-        lab = label if axis == 0 else label.T                 # rows step along `axis`
+        lab = label if axis == 0 else label.T  # rows step along `axis`
         origin_along, origin_across = (ox, oy) if axis == 0 else (oy, ox)
-        a, c = lab[:-1], lab[1:]                              # neighbours across the line index i+1
+        a, c = lab[:-1], lab[1:]  # neighbours across the line index i+1
         for i in range(a.shape[0]):
             coord = origin_along + (i + 1) * GRID_M
             # free side and its direction: +1 when the free cell is beyond the line
@@ -209,8 +211,16 @@ def _wall_runs(plan: FloorPlan) -> list[_WallRun]:
                 j_end = j
                 while j_end + 1 < n and key[j_end + 1] == key[j]:
                     j_end += 1
-                runs.append(_WallRun(axis, round(coord, 6), round(origin_across + j * GRID_M, 6),
-                                     round(origin_across + (j_end + 1) * GRID_M, 6), int(sign[j]), int(free[j])))
+                runs.append(
+                    _WallRun(
+                        axis,
+                        round(coord, 6),
+                        round(origin_across + j * GRID_M, 6),
+                        round(origin_across + (j_end + 1) * GRID_M, 6),
+                        int(sign[j]),
+                        int(free[j]),
+                    )
+                )
                 j = j_end + 1
     return runs
 
@@ -251,7 +261,16 @@ def build_scene(spec: SceneSpec) -> SyntheticScene:
     for r in runs:
         s = plan.spaces[r.space]
         top = plan.door_height_m if s.kind == "door" else H
-        mb.wall_quad(r.axis, r.coord, r.lo, r.hi, 0.0, top, r.normal_sign, door_paint if s.kind == "door" else space_walls[r.space])
+        mb.wall_quad(
+            r.axis,
+            r.coord,
+            r.lo,
+            r.hi,
+            0.0,
+            top,
+            r.normal_sign,
+            door_paint if s.kind == "door" else space_walls[r.space],
+        )
     for s in plan.spaces_of("door"):
         _lintel(mb, s, plan, door_paint)
 
@@ -277,8 +296,17 @@ def build_scene(spec: SceneSpec) -> SyntheticScene:
         if s.kind == "corridor":
             n = max(1, n // 2)
         for _ in range(n):
-            _place_furniture(mb, rng, s, furniture, doors, route_xy, spec.route_clearance_m, next(seed_counter),
-                             corridor=s.kind == "corridor")
+            _place_furniture(
+                mb,
+                rng,
+                s,
+                furniture,
+                doors,
+                route_xy,
+                spec.route_clearance_m,
+                next(seed_counter),
+                corridor=s.kind == "corridor",
+            )
 
     mesh, face_material = mb.build()
     return SyntheticScene(spec, plan, mesh, face_material, mb.materials, route_xy)
@@ -297,17 +325,18 @@ def _lintel(mb: _MeshBuilder, door: Space, plan: FloorPlan, material: int) -> No
     """The wall above a doorway: two faces in the planes of the walls it joins, and its underside."""
     r, zd, H = door.rect, plan.door_height_m, plan.wall_height_m
     w, d = r.size
-    if d <= w:   # the doorway passes along y (a wall parallel to x)
+    if d <= w:  # the doorway passes along y (a wall parallel to x)
         mb.wall_quad(1, r.y0, r.x0, r.x1, zd, H, -1, material)
         mb.wall_quad(1, r.y1, r.x0, r.x1, zd, H, +1, material)
-    else:        # passes along x
+    else:  # passes along x
         mb.wall_quad(0, r.x0, r.y0, r.y1, zd, H, -1, material)
         mb.wall_quad(0, r.x1, r.y0, r.y1, zd, H, +1, material)
     mb.horizontal_quad(r, zd, False, material)
 
 
-def _place_poster(mb: _MeshBuilder, rng: np.random.Generator, runs: list[_WallRun],
-                  taken: list, H: float, seed: int) -> None:
+def _place_poster(
+    mb: _MeshBuilder, rng: np.random.Generator, runs: list[_WallRun], taken: list, H: float, seed: int
+) -> None:
     """Try a few random spots for one poster; skip it when none is free."""
     for _ in range(10):
         r = runs[int(rng.integers(len(runs)))]
@@ -325,8 +354,17 @@ def _place_poster(mb: _MeshBuilder, rng: np.random.Generator, runs: list[_WallRu
         return
 
 
-def _place_furniture(mb: _MeshBuilder, rng: np.random.Generator, space: Space, placed: list[Rect],
-                     doors: list[Rect], route_xy: np.ndarray, clearance: float, seed: int, corridor: bool) -> None:
+def _place_furniture(
+    mb: _MeshBuilder,
+    rng: np.random.Generator,
+    space: Space,
+    placed: list[Rect],
+    doors: list[Rect],
+    route_xy: np.ndarray,
+    clearance: float,
+    seed: int,
+    corridor: bool,
+) -> None:
     """Try random placements of one random piece; skip it when none fits."""
     room = space.rect
     kinds = ("cabinet", "crates") if corridor else ("cabinet", "table", "low", "crates", "cabinet")
@@ -349,7 +387,7 @@ def _place_furniture(mb: _MeshBuilder, rng: np.random.Generator, space: Space, p
                 x0 = rng.uniform(room.x0 + gap, room.x1 - gap - w)
                 y0 = room.y0 + gap if side == 0 else room.y1 - gap - d
                 fp = Rect(x0, y0, x0 + w, y0 + d)
-            else:               # west / east wall: width along y
+            else:  # west / east wall: width along y
                 y0 = rng.uniform(room.y0 + gap, room.y1 - gap - w)
                 x0 = room.x0 + gap if side == 2 else room.x1 - gap - d
                 fp = Rect(x0, y0, x0 + d, y0 + w)
@@ -376,10 +414,15 @@ def _place_furniture(mb: _MeshBuilder, rng: np.random.Generator, space: Space, p
                 mb.box(Rect(lx, ly, lx + leg, ly + leg), 0.0, h - top, material, top=False)
         elif kind == "crates":
             mb.box(fp, 0.0, h, material)
-            if rng.uniform() < 0.6:   # a smaller crate on top
+            if rng.uniform() < 0.6:  # a smaller crate on top
                 cx, cy = fp.center
                 s = 0.35 * min(fp.size)
-                mb.box(Rect(round(cx - s, 4), round(cy - s, 4), round(cx + s, 4), round(cy + s, 4)), h, round(h + 2 * s, 4), material)
+                mb.box(
+                    Rect(round(cx - s, 4), round(cy - s, 4), round(cx + s, 4), round(cy + s, 4)),
+                    h,
+                    round(h + 2 * s, 4),
+                    material,
+                )
         else:
             mb.box(fp, 0.0, h, material)
         return

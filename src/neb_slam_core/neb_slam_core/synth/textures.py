@@ -83,9 +83,11 @@ def hash_cells(i: np.ndarray, j: np.ndarray, seed: int) -> np.ndarray:
 
     A splitmix64 finaliser over a linear combination of the inputs (uint64 arithmetic wraps).
     """
-    x = (np.asarray(i, dtype=np.int64).astype(np.uint64) * _P1
-         + np.asarray(j, dtype=np.int64).astype(np.uint64) * _P2
-         + np.uint64(((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15) % (1 << 64)))
+    x = (
+        np.asarray(i, dtype=np.int64).astype(np.uint64) * _P1
+        + np.asarray(j, dtype=np.int64).astype(np.uint64) * _P2
+        + np.uint64(((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15) % (1 << 64))
+    )
     x = (x ^ (x >> np.uint64(30))) * _M2
     x = (x ^ (x >> np.uint64(27))) * _M3
     x = x ^ (x >> np.uint64(31))
@@ -110,7 +112,7 @@ def fbm(u: np.ndarray, v: np.ndarray, seed: int, octaves: int = 3) -> np.ndarray
     total = np.zeros(np.shape(u))
     amp, norm = 1.0, 0.0
     for k in range(octaves):
-        f = 2.0 ** k
+        f = 2.0**k
         total += amp * value_noise(u * f + 17.3 * k, v * f - 5.1 * k, seed + 101 * k)
         norm += amp
         amp *= 0.5
@@ -237,7 +239,7 @@ def _dots(m: Material, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     cu = 0.5 + 0.3 * (hash_cells(ii, jj, m.seed) - 0.5)
     cv = 0.5 + 0.3 * (hash_cells(ii, jj, m.seed + 1) - 0.5)
     rad = 0.15 + 0.2 * hash_cells(ii, jj, m.seed + 2)
-    inside = (u / s - iu - cu) ** 2 + (v / s - iv - cv) ** 2 < rad ** 2
+    inside = (u / s - iu - cu) ** 2 + (v / s - iv - cv) ** 2 < rad**2
     dot = _pick(pal[1:], hash_cells(ii, jj, m.seed + 3))
     return np.where(inside[:, None], dot, pal[0])
 
@@ -264,8 +266,15 @@ def _poster(m: Material, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 _PATTERNS = {
-    "paint": _paint, "blobs": _blobs, "brick": _brick, "wood": _wood, "tiles": _tiles,
-    "checker": _checker, "stripes": _stripes, "dots": _dots, "poster": _poster,
+    "paint": _paint,
+    "blobs": _blobs,
+    "brick": _brick,
+    "wood": _wood,
+    "tiles": _tiles,
+    "checker": _checker,
+    "stripes": _stripes,
+    "dots": _dots,
+    "poster": _poster,
 }
 
 
@@ -282,8 +291,9 @@ def albedo(material: Material, uv: np.ndarray) -> np.ndarray:
 # random materials for the scene builder
 
 
-def random_color(rng: np.random.Generator, saturation: tuple[float, float] = (0.3, 0.9),
-                 value: tuple[float, float] = (0.35, 0.95)) -> Color:
+def random_color(
+    rng: np.random.Generator, saturation: tuple[float, float] = (0.3, 0.9), value: tuple[float, float] = (0.35, 0.95)
+) -> Color:
     """A random colour drawn uniformly in HSV (hue, and the given saturation and value ranges)."""
     h = rng.uniform(0.0, 1.0)
     s = rng.uniform(*saturation)
@@ -301,24 +311,37 @@ def random_material(rng: np.random.Generator, kind: str, seed: int) -> Material:
     Palettes mix dark and light colours so that the patterns keep their contrast in grey (what
     corner detectors see), not only in hue.
     """
-    dark = lambda: random_color(rng, (0.3, 0.9), (0.12, 0.45))    # noqa: E731
-    light = lambda: random_color(rng, (0.1, 0.6), (0.65, 0.95))   # noqa: E731
-    any_ = lambda: random_color(rng)                                # noqa: E731
+    dark = lambda: random_color(rng, (0.3, 0.9), (0.12, 0.45))  # noqa: E731
+    light = lambda: random_color(rng, (0.1, 0.6), (0.65, 0.95))  # noqa: E731
+    any_ = lambda: random_color(rng)  # noqa: E731
     if kind == "paint":
         return Material(kind, (random_color(rng, (0.05, 0.4), (0.6, 0.95)), any_(), any_()), 1.0, seed)
     if kind == "brick":
-        return Material(kind, (random_color(rng, (0.4, 0.9), (0.35, 0.7)), dark(), random_color(rng, (0.0, 0.15), (0.75, 0.95))),
-                        float(rng.uniform(0.07, 0.12)), seed)
+        return Material(
+            kind,
+            (random_color(rng, (0.4, 0.9), (0.35, 0.7)), dark(), random_color(rng, (0.0, 0.15), (0.75, 0.95))),
+            float(rng.uniform(0.07, 0.12)),
+            seed,
+        )
     if kind == "wood":
         base = random_color(rng, (0.4, 0.7), (0.45, 0.8))
-        return Material(kind, (base, tuple(x * 0.55 for x in base), (0.12, 0.08, 0.05)),
-                        float(rng.uniform(0.12, 0.22)), seed)
+        return Material(
+            kind, (base, tuple(x * 0.55 for x in base), (0.12, 0.08, 0.05)), float(rng.uniform(0.12, 0.22)), seed
+        )
     if kind == "tiles":
-        return Material(kind, (dark(), light(), any_(), random_color(rng, (0.0, 0.1), (0.2, 0.9))),
-                        float(rng.uniform(0.15, 0.35)), seed)
+        return Material(
+            kind,
+            (dark(), light(), any_(), random_color(rng, (0.0, 0.1), (0.2, 0.9))),
+            float(rng.uniform(0.15, 0.35)),
+            seed,
+        )
     if kind == "checker":
-        return Material(kind, (random_color(rng, (0.0, 0.3), (0.8, 0.95)), random_color(rng, (0.3, 0.9), (0.15, 0.45)), any_()),
-                        float(rng.uniform(0.15, 0.4)), seed)
+        return Material(
+            kind,
+            (random_color(rng, (0.0, 0.3), (0.8, 0.95)), random_color(rng, (0.3, 0.9), (0.15, 0.45)), any_()),
+            float(rng.uniform(0.15, 0.4)),
+            seed,
+        )
     if kind == "stripes":
         return Material(kind, (dark(), light(), any_(), light()), float(rng.uniform(0.08, 0.2)), seed)
     if kind == "dots":
@@ -338,7 +361,15 @@ def random_poster(rng: np.random.Generator, uv_box: tuple[float, float, float, f
         rv = float(rng.uniform(0.08, 0.3) * (v1 - v0))
         if kind != "rect":
             ru = rv = min(ru, rv) * float(rng.uniform(1.0, 1.6))
-        shapes.append(PosterShape(kind, float(rng.uniform(u0, u1)), float(rng.uniform(v0, v1)), ru, rv,
-                                  random_color(rng, (0.5, 1.0), (0.2, 1.0))))
+        shapes.append(
+            PosterShape(
+                kind,
+                float(rng.uniform(u0, u1)),
+                float(rng.uniform(v0, v1)),
+                ru,
+                rv,
+                random_color(rng, (0.5, 1.0), (0.2, 1.0)),
+            )
+        )
     colors = (random_color(rng, (0.0, 0.5), (0.5, 1.0)), random_color(rng, (0.0, 0.3), (0.05, 0.3)), (0.0, 0.0, 0.0))
     return Material("poster", colors, 1.0, seed, tuple(shapes), tuple(float(x) for x in uv_box))

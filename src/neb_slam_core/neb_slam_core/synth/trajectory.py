@@ -63,9 +63,13 @@ class TrajectorySpec:
             raise ConfigError(f"TrajectorySpec.n_frames: expected at least 2 frames, got {self.n_frames}")
         if not self.fps > 0:
             raise ConfigError(f"TrajectorySpec.fps: expected > 0, got {self.fps}")
-        if not (0.3 <= self.height_m - abs(self.height_amplitude_m) and self.height_m + abs(self.height_amplitude_m) <= 2.0):
-            raise ConfigError(f"TrajectorySpec.height_m: camera height must stay within 0.3..2.0 m, got "
-                              f"{self.height_m} +/- {self.height_amplitude_m}")
+        if not (
+            self.height_m - abs(self.height_amplitude_m) >= 0.3 and self.height_m + abs(self.height_amplitude_m) <= 2.0
+        ):
+            raise ConfigError(
+                f"TrajectorySpec.height_m: camera height must stay within 0.3..2.0 m, got "
+                f"{self.height_m} +/- {self.height_amplitude_m}"
+            )
 
 
 class RouteCurve:
@@ -118,9 +122,11 @@ class RouteCurve:
         mode = "wrap" if self.closed else "nearest"
         avg = np.stack([gaussian_filter1d(tangent[:, k], sigma, mode=mode) for k in (0, 1)], axis=1)
         yaw_dense = np.unwrap(np.arctan2(avg[:, 1], avg[:, 0]))
-        if self.closed:   # periodic interpolation: append the first sample one period later
+        if self.closed:  # periodic interpolation: append the first sample one period later
             s_dense = np.append(s_dense, self.length)
-            yaw_dense = np.append(yaw_dense, yaw_dense[0] + 2 * np.pi * np.round((yaw_dense[-1] - yaw_dense[0]) / (2 * np.pi)))
+            yaw_dense = np.append(
+                yaw_dense, yaw_dense[0] + 2 * np.pi * np.round((yaw_dense[-1] - yaw_dense[0]) / (2 * np.pi))
+            )
         return np.interp(s, s_dense, yaw_dense)
 
     def sample(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -130,7 +136,7 @@ class RouteCurve:
         """
         s = np.linspace(0.0, self.length, n)
         xy, tangent = self.at(s)
-        if self.closed:            # exact closure, not up to the interpolation's rounding
+        if self.closed:  # exact closure, not up to the interpolation's rounding
             xy[-1], tangent[-1] = xy[0], tangent[0]
         return xy, tangent, s
 
@@ -144,18 +150,19 @@ def camera_rotation(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
     (positive: up), radians, in a z-up world; the camera's columns are (right, down, forward)."""
     yaw, pitch = np.broadcast_arrays(np.asarray(yaw, np.float64), np.asarray(pitch, np.float64))
     f = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], axis=-1)
-    r = np.stack([np.sin(yaw), -np.cos(yaw), np.zeros_like(yaw)], axis=-1)     # f x up, normalised
+    r = np.stack([np.sin(yaw), -np.cos(yaw), np.zeros_like(yaw)], axis=-1)  # f x up, normalised
     d = np.cross(f, r)
     return np.stack([r, d, f], axis=-1)
 
 
-def make_trajectory(curve: RouteCurve, spec: TrajectorySpec, floor_z: float = 0.0,
-                    fixed_yaw_deg: float | None = None) -> Trajectory:
+def make_trajectory(
+    curve: RouteCurve, spec: TrajectorySpec, floor_z: float = 0.0, fixed_yaw_deg: float | None = None
+) -> Trajectory:
     """Poses along ``curve``: ``spec.n_frames`` frames at constant speed, stamped at ``spec.fps``."""
     spec.validate()
     n = spec.n_frames
     xy, _, s = curve.sample(n)
-    phase = s / curve.length                             # 0..1 along the route
+    phase = s / curve.length  # 0..1 along the route
 
     def cycles(period_m: float) -> float:
         c = curve.length / period_m

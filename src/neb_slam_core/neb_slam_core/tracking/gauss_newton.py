@@ -1,8 +1,8 @@
 """Gauss-Newton linearisation of the tracking objective in the camera pose.
 
-The paper optimises the pose with Adam (a learning rate, a fixed number of steps). On two CPU cores
-each step costs a full render, and Adam needs 30-100 of them to settle to within a millimetre (it
-moves each pose component by about the learning rate per step, whatever the curvature). The objective
+The paper optimises the pose with Adam (a learning rate, a fixed number of steps). Each step costs a
+full render, and Adam needs tens of them to settle to within a millimetre (it moves each pose component
+by about the learning rate per step, whatever the curvature). The objective
 is, however, a weighted sum of squares: the colour and depth residuals of the rendered rays and the
 SDF and free-space residuals of their samples. So the pose can be solved for as a least-squares
 problem, with the exact same objective, by Levenberg-Marquardt: a handful of damped Gauss-Newton
@@ -99,8 +99,9 @@ def spatial_gradients(block_map: BlockMap, points: torch.Tensor, block_ids: list
     return grads if grads is not None else forward_difference_gradients(block_map, points, block_ids)
 
 
-def forward_difference_gradients(block_map: BlockMap, points: torch.Tensor,
-                                 block_ids: list[int] | None) -> torch.Tensor:
+def forward_difference_gradients(
+    block_map: BlockMap, points: torch.Tensor, block_ids: list[int] | None
+) -> torch.Tensor:
     """The same ``(4, A, 3)`` by forward differences along the world axes in one batched query (any
     backend and device). Where a moved point leaves the consulted blocks, the gradient is 0 (the masked
     value jumps there)."""
@@ -117,8 +118,7 @@ def forward_difference_gradients(block_map: BlockMap, points: torch.Tensor,
     return grads.permute(2, 1, 0) * inside[None, :, None].to(grads.dtype)
 
 
-def spatial_gradients_autograd(block_map: BlockMap, points: torch.Tensor,
-                               block_ids: list[int] | None) -> torch.Tensor:
+def spatial_gradients_autograd(block_map: BlockMap, points: torch.Tensor, block_ids: list[int] | None) -> torch.Tensor:
     """The reference for :func:`spatial_gradients`: the same ``(4, A, 3)`` by autograd, one backward pass
     per output (the tests and ``benchmarks/tracking.py`` compare against it)."""
     p = points.detach().clone().requires_grad_(True)
@@ -129,8 +129,14 @@ def spatial_gradients_autograd(block_map: BlockMap, points: torch.Tensor,
     return torch.stack(grads)
 
 
-def evaluate_pose(block_map: BlockMap, pixels: PixelSamples, T_world_cam: np.ndarray, z: torch.Tensor,
-                  cfg: RenderConfig, block_ids: list[int] | None) -> PoseEvaluation:
+def evaluate_pose(
+    block_map: BlockMap,
+    pixels: PixelSamples,
+    T_world_cam: np.ndarray,
+    z: torch.Tensor,
+    cfg: RenderConfig,
+    block_ids: list[int] | None,
+) -> PoseEvaluation:
     """The tracking objective at ``T_world_cam`` with fixed sample depths ``z`` (R, S).
 
     The residuals are the objective's terms (:func:`~neb_slam_core.render.losses.render_residuals`), so
@@ -174,8 +180,9 @@ def _active_entries(term: Residual) -> torch.Tensor:
     return term.mask & (term.r.abs() > term.active_above)
 
 
-def normal_equations(ev: PoseEvaluation, block_map: BlockMap, block_ids: list[int] | None,
-                     gradients=spatial_gradients) -> tuple[np.ndarray, np.ndarray]:
+def normal_equations(
+    ev: PoseEvaluation, block_map: BlockMap, block_ids: list[int] | None, gradients=spatial_gradients
+) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton system at ``ev``: ``H = J^T W J`` (6, 6) and ``g = J^T W r`` (6,), float64; ``2 g`` is
     the objective's gradient in (omega, dt). ``gradients``: how the samples' spatial gradients are
     computed (:func:`spatial_gradients`, or its autograd reference)."""
@@ -189,8 +196,9 @@ def normal_equations(ev: PoseEvaluation, block_map: BlockMap, block_ids: list[in
     # per ray: d depth_i = sum_j a_ij (z_ij - depth_i) d sdf_ij; per colour channel likewise, plus the
     # samples' own colour change w_ij d c_ij
     d_depth = (a * (ev.z[ray, sample] - ev.depth[ray]))[:, None] * A
-    d_colour = (a[:, None] * (ev.sample_rgb[ray, sample] - ev.colour[ray])).T[..., None] * A \
-        + ev.weights[ray, sample][None, :, None] * jac[1:]  # (3, A, 6)
+    d_colour = (a[:, None] * (ev.sample_rgb[ray, sample] - ev.colour[ray])).T[..., None] * A + ev.weights[ray, sample][
+        None, :, None
+    ] * jac[1:]  # (3, A, 6)
     # the Jacobians of what the terms' residuals are affine functions of (rows: rays, or active samples)
     jacobians = {
         "rgb": A.new_zeros(r_count, 3, 6).index_add_(0, ray, d_colour.permute(1, 0, 2)),

@@ -2,12 +2,13 @@
 
 N_t random pixels with valid depth and the paper's objective without the smoothness term (which does
 not depend on the pose). Only rays whose observed surface lies inside a block in the frustum
-contribute (:func:`~neb_slam_core.render.volume.observed_rays`), so unmapped space never pulls the pose. Two optimisers (``TrackingConfig.method``):
+contribute (:func:`~neb_slam_core.render.volume.observed_rays`), so unmapped space never pulls the pose. Two
+optimisers (``TrackingConfig.method``):
 
 - ``adam``, the paper's: a fixed number of Adam steps with fresh stratified samples each; the pose
   with the lowest loss seen is kept.
 - ``gauss_newton``: Levenberg-Marquardt on the same objective (see :mod:`.gauss_newton`), a few steps
-  with no learning rate. On TUM fr1_xyz it reaches in 5-6 steps the pose Adam approaches in 40-100.
+  with no learning rate, to the pose Adam approaches in tens of steps (``benchmarks/tracking.py``).
 """
 
 from __future__ import annotations
@@ -51,8 +52,7 @@ class TrackingResult:
 class Tracker:
     """Pose optimisation against a fixed map, by Adam (the paper) or Levenberg-Marquardt."""
 
-    def __init__(self, cfg: TrackingConfig, render_cfg: RenderConfig, seed: int = 0,
-                 gradients=spatial_gradients):
+    def __init__(self, cfg: TrackingConfig, render_cfg: RenderConfig, seed: int = 0, gradients=spatial_gradients):
         """``gradients``: how Levenberg-Marquardt gets the samples' spatial gradients
         (:func:`~neb_slam_core.tracking.gauss_newton.spatial_gradients`, or its autograd reference)."""
         self.cfg = cfg
@@ -64,8 +64,9 @@ class Tracker:
     def track(self, block_map: BlockMap, frame: RgbdFrame, T_init: np.ndarray) -> TrackingResult:
         dev = block_map.device
         T_init = np.array(T_init, dtype=np.float64)
-        px = sample_pixels(frame, self.cfg.n_rays, self.rng, valid_depth_only=True, border=self.cfg.border_px,
-                           device=dev)
+        px = sample_pixels(
+            frame, self.cfg.n_rays, self.rng, valid_depth_only=True, border=self.cfg.border_px, device=dev
+        )
         if len(px) == 0:
             return TrackingResult(T_init, float("inf"), float("inf"), 0, 0)
         s = self.render_cfg.sampling
@@ -83,8 +84,9 @@ class Tracker:
         best = (float("inf"), T_init, float("inf"), 0)
         for _ in range(self.cfg.iterations):
             rays = px.to_world(pose.matrices()[0])
-            loss, out = objective(block_map, rays, self.render_cfg, ids, generator=self.generator,
-                                  with_smoothness=False)
+            loss, out = objective(
+                block_map, rays, self.render_cfg, ids, generator=self.generator, with_smoothness=False
+            )
             n_valid = int(out.observed.sum())
             value = float(loss.total.detach())
             if n_valid >= self.cfg.min_valid_rays and value < best[0]:
@@ -99,8 +101,9 @@ class Tracker:
             n_valid = int(out.observed.sum())
         return TrackingResult(T, value, resid, n_valid, self.cfg.iterations)
 
-    def _levenberg_marquardt(self, block_map: BlockMap, px: PixelSamples, T_init: np.ndarray,
-                             ids: list[int]) -> TrackingResult:
+    def _levenberg_marquardt(
+        self, block_map: BlockMap, px: PixelSamples, T_init: np.ndarray, ids: list[int]
+    ) -> TrackingResult:
         """Damped Gauss-Newton on the same objective with one fixed set of stratified samples (so the
         objective is a deterministic function of the pose and each step is accepted only if it lowers
         it). A rejected step costs one evaluation; an accepted one also its Jacobian."""

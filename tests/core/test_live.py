@@ -51,7 +51,9 @@ def test_choose_frame_newest_within_the_gap():
 
 
 def test_predict_from_stamps_scales_the_last_tracked_motion():
-    cfg = load_config("ci", overrides=["tracking.motion_model=stamps", "tracking.max_extrapolation=4.0"])
+    cfg = load_config(
+        "ci", overrides=["tracking.motion_model=stamps", "tracking.max_extrapolation=4.0", "live.max_gap_s=0.3"]
+    )
     fe = Frontend(cfg, new_block_map(cfg), np.eye(4))
     step = screw(0.02, 0.01)  # the motion between the last two tracked frames, 100 ms apart
     ms = 1_000_000
@@ -63,6 +65,9 @@ def test_predict_from_stamps_scales_the_last_tracked_motion():
     # capped at max_extrapolation times that motion
     assert np.allclose(fe.predict(1100 * ms), step @ screw(0.08, 0.04), atol=1e-9)
     assert fe.last_tracked_stamp_ns == 100 * ms
+    # the next step counts from the last frame processed (200 ms, failed), not from the last tracked one
+    # (100 ms): the newest frame up to 500 ms
+    assert fe.next_frame([250 * ms, 450 * ms, 500 * ms, 550 * ms]) == 2
     # the paper's model predicts from the last two frames by count and only after two tracked frames
     paper = Frontend(load_config("ci"), new_block_map(cfg), np.eye(4))
     paper.keyframe_poses, paper._frames, paper._ok_streak = fe.keyframe_poses, fe._frames, 0

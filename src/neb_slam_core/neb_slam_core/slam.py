@@ -170,24 +170,24 @@ def scale_motion(delta: np.ndarray, scale: float) -> np.ndarray:
     return np.real(expm(scale * np.real(logm(np.asarray(delta, dtype=np.float64)))))
 
 
-def choose_frame(stamps_ns, last_tracked_ns: int | None, max_gap_s: float, has_velocity: bool = True) -> int:
+def choose_frame(stamps_ns, last_ns: int | None, max_gap_s: float, has_velocity: bool = True) -> int:
     """The index of the frame to track next among ``stamps_ns`` (arrived, not tracked yet, oldest first).
 
-    The newest, but none more than ``max_gap_s`` after the last tracked frame (the oldest when all are
-    further): a frame far ahead of the last pose lies outside the tracker's basin, so an engine that fell
-    behind catches up in steps of at most that. Without a velocity (``has_velocity`` False: one frame
-    tracked, or a failure since) the prediction is the last pose itself, so the oldest frame is taken.
-    ``max_gap_s`` 0 or nothing tracked yet: the newest.
+    The newest, but none more than ``max_gap_s`` after the last processed frame (``last_ns``; the oldest
+    when all are further): a frame far ahead of the last pose lies outside the tracker's basin, so an
+    engine that fell behind catches up in steps of at most that. Without a velocity (``has_velocity``
+    False: one frame tracked so far) the prediction is the last pose itself, so the oldest frame is
+    taken. ``max_gap_s`` 0 or nothing processed yet: the newest.
     """
     n = len(stamps_ns)
     if n == 0:
         raise ValueError("choose_frame: no frame to choose from")
     gap_ns = int(round(max_gap_s * 1e9))
-    if gap_ns <= 0 or last_tracked_ns is None:
+    if gap_ns <= 0 or last_ns is None:
         return n - 1
     if not has_velocity:
         return 0
-    within = int(np.searchsorted(np.asarray(stamps_ns, dtype=np.int64), last_tracked_ns + gap_ns, side="right"))
+    within = int(np.searchsorted(np.asarray(stamps_ns, dtype=np.int64), last_ns + gap_ns, side="right"))
     return max(within - 1, 0)
 
 
@@ -363,7 +363,13 @@ class Frontend:
     def next_frame(self, stamps_ns) -> int:
         """For an engine that cannot take every frame: which of the frames that arrived and are not tracked
         yet (``stamps_ns``, oldest first) to track next (:func:`choose_frame` with ``live.max_gap_s``)."""
-        return choose_frame(stamps_ns, self.last_tracked_stamp_ns, self.cfg.live.max_gap_s, self._ok_streak >= 2)
+        # the step is counted from the last frame processed, failed or not: from the last tracked one, a run
+        # of failures would hold the engine to the oldest frame and its lag would grow without bound.
+        # A velocity: the last two frames by count (``frames``), or any two tracked frames (``stamps``).
+        last = self._frames[-1].stamp_ns if self._frames else None
+        stamps = self.cfg.tracking.motion_model == "stamps"
+        has_velocity = len(self._tracked) >= 2 if stamps else self._ok_streak >= 2
+        return choose_frame(stamps_ns, last, self.cfg.live.max_gap_s, has_velocity)
 
     def predict(self, stamp_ns: int) -> np.ndarray:
         """The constant-velocity prediction of the pose of a frame stamped ``stamp_ns`` (the next one).

@@ -24,6 +24,17 @@ def _result(folder: Path, name: str, figures: dict, stamp: dict) -> None:
     (folder / name).write_text(json.dumps({**figures, "stamp": stamp}))
 
 
+def test_recorded_paths_inside_the_repository_are_relative(tmp_path):
+    common = _module("common")
+    inside = str(common.REPO / "runs" / "x" / "trajectory.txt")
+    figures = {"trajectory": inside, "runs": [{"trajectory": inside}], "bag": "/elsewhere/bag", "n": 3}
+    path = common.record("live", figures, None, results_dir=tmp_path)
+    data = json.loads(path.read_text())
+    assert data["trajectory"] == os.path.join("runs", "x", "trajectory.txt")
+    assert data["runs"] == [{"trajectory": os.path.join("runs", "x", "trajectory.txt")}]
+    assert data["bag"] == "/elsewhere/bag" and data["n"] == 3  # outside the repository: as given
+
+
 def test_record_stamps_results_and_the_json_copy(tmp_path):
     common = _module("common")
     figures = {"ate_rmse_cm": 1.5, "first_frame_s": 9.65, "n_blocks": 1}

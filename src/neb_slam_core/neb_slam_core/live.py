@@ -359,16 +359,16 @@ class LiveSlam:
                     self._corrections.append((kid, event.start_id, corrected))
                     self._cond.notify_all()
 
-    def live_metrics(self, frames_in: int, frames_dropped: int, span_s: float) -> dict:
+    def live_metrics(self, frames_in: int, span_s: float) -> dict:
         """The live figures of a run for its metrics.json: ``frames_in`` frames reached the engine's input
-        and ``frames_dropped`` of them were never tracked, over ``span_s`` seconds from the first frame's
-        arrival to the last tracked frame."""
+        (those it did not track count as dropped), over ``span_s`` seconds from the first frame's arrival
+        to the last tracked frame."""
         st = self.stats
         return {
             "live": True,
             "frames_in": frames_in,
             "frames_tracked": self.n_frames,
-            "frames_dropped": frames_dropped,
+            "frames_dropped": frames_in - self.n_frames,
             "tracked_fps": self.n_frames / max(span_s, 1e-9),
             "live_span_s": span_s,
             "mapping_lag_end": st.mapping_lag,

@@ -363,9 +363,9 @@ class Frontend:
     def next_frame(self, stamps_ns) -> int:
         """For an engine that cannot take every frame: which of the frames that arrived and are not tracked
         yet (``stamps_ns``, oldest first) to track next (:func:`choose_frame` with ``live.max_gap_s``)."""
-        # the step is counted from the last frame processed, failed or not: from the last tracked one, a run
-        # of failures would hold the engine to the oldest frame and its lag would grow without bound.
-        # A velocity: the last two frames by count (``frames``), or any two tracked frames (``stamps``).
+        # the step counts from the last frame processed, failed or not, so that a run of failures still
+        # moves the engine forward. A velocity: the last two frames by count (``frames``), or any two
+        # tracked frames (``stamps``).
         last = self._frames[-1].stamp_ns if self._frames else None
         stamps = self.cfg.tracking.motion_model == "stamps"
         has_velocity = len(self._tracked) >= 2 if stamps else self._ok_streak >= 2
@@ -393,8 +393,9 @@ class Frontend:
             return self.pose_of(self._tracked[-1] if self._tracked else index - 1)
         i2, i1 = self._tracked
         T1, T2 = self.pose_of(i1), self.pose_of(i2)
-        dt_prev = self._frames[i1].stamp_ns - self._frames[i2].stamp_ns
-        scale = (stamp_ns - self._frames[i1].stamp_ns) / dt_prev if dt_prev > 0 else 1.0
+        last = self.last_tracked_stamp_ns
+        dt_prev = last - self._frames[i2].stamp_ns
+        scale = (stamp_ns - last) / dt_prev if dt_prev > 0 else 1.0
         return orthonormalize(T1 @ scale_motion(invert(T2) @ T1, min(max(scale, 0.0), c.max_extrapolation)))
 
     # ------------------------------------------------------------------ steps

@@ -193,9 +193,7 @@ class SlamNode(NebNode):
         summary.metrics["frames_in"] = frames_in
         summary.metrics["frames_dropped"] = frames_in - self.slam.n_frames
         if self.live:
-            summary.metrics.update(
-                self.slam.live_metrics(frames_in, frames_in - self.slam.n_frames, self._t_last - self._t_first)
-            )
+            summary.metrics.update(self.slam.live_metrics(frames_in, self._t_last - self._t_first))
         run_dir.write_metrics(summary.metrics)
         if summary.mesh is not None:  # the final mesh, also to the topic's subscribers
             self.map_outputs.publish(summary.mesh, FINAL_MESH_ACK_S)

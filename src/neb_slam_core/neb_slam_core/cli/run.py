@@ -335,7 +335,7 @@ def _process_live(slam, dataset, indices: range, first, run_log, rate: float) ->
 
     stamps = np.asarray(dataset.stamps_ns, dtype=np.int64)[np.asarray(indices)]
     arrival_s = (stamps - stamps[0]) * 1e-9 / rate  # when each frame reaches the engine, from the start
-    status, n_dropped, k = "complete", 0, 0
+    status, k = "complete", 0
     t0 = time.perf_counter()
     with logging_redirect_tqdm(), tqdm(total=len(indices), desc="live", unit="frame", dynamic_ncols=True) as bar:
         try:
@@ -347,19 +347,20 @@ def _process_live(slam, dataset, indices: range, first, run_log, rate: float) ->
                     time.sleep(arrival_s[k] - now)
                     continue
                 chosen = k + slam.next_frame(stamps[k : newest + 1])
-                n_dropped += chosen - k
                 frame = first if chosen == 0 else dataset[indices[chosen]]
                 run_log.begin(frame)
                 result = slam.process(frame)
                 run_log.end(result)
                 bar.update(chosen + 1 - k)
                 k = chosen + 1
-                bar.set_postfix(tracked=slam.n_frames, dropped=n_dropped, lag=slam.stats.mapping_lag, refresh=False)
+                bar.set_postfix(
+                    tracked=slam.n_frames, dropped=k - slam.n_frames, lag=slam.stats.mapping_lag, refresh=False
+                )
         except KeyboardInterrupt:
             status = "interrupted"
     span_s = time.perf_counter() - t0
     slam.close()
-    return status, {"rate": rate, **slam.live_metrics(k, n_dropped, span_s)}
+    return status, {"rate": rate, **slam.live_metrics(k, span_s)}
 
 
 def _print_summary(summary) -> None:

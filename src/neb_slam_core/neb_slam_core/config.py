@@ -371,7 +371,7 @@ class LiveConfig:
     keyframes. ``torch_threads``: torch's intra-op threads of each thread that runs the engine (0: torch's
     default; the ``live`` preset sets 1, so that on two cores the tracker and the mapper each keep one
     busy instead of competing for both); the ROS nodes apply it too. ``max_gap_s``: the engine tracks
-    the newest frame that arrived, but none more than this after the last tracked frame (0: the newest,
+    the newest frame that arrived, but none more than this after the last processed frame (0: the newest,
     however far): a frame far ahead of the last pose lies outside the tracker's basin, so after a wait
     (the first map) the engine catches up in steps instead of jumping.
     """

@@ -1,7 +1,7 @@
 """``slam``: the whole suite in one process, one engine, no map serialisation.
 
 Runs the engine on the camera input: by default the live one (:class:`~neb_slam_core.live.LiveSlam`:
-tracking in the node's worker thread on the newest frame, within ``live.max_gap_s`` of the last tracked
+tracking in the node's worker thread on the newest frame, within ``live.max_gap_s`` of the last processed
 one, mapping and loop closure in threads of their own), or with ``live:=false`` (and in lockstep replay)
 :class:`~neb_slam_core.slam.Slam`, every frame in the paper's order. It publishes what the separate
 ``tracker`` and ``mapper`` publish for other stacks: ``pose``, ``odometry``, ``path``, ``blocks`` and

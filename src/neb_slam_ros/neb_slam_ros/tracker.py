@@ -143,7 +143,7 @@ class TrackerNode(NebNode):
         if self._waiting_for_map():
             return updates, None
         # in sync with the mapper every frame is tracked in order; otherwise the newest one (within
-        # live.max_gap_s of the last tracked frame)
+        # live.max_gap_s of the last processed frame)
         if self.opt.map_sync:
             return updates, self.input.pop()
         if self.frontend is None:

@@ -30,7 +30,7 @@ ground-truth mesh is given with --gt-mesh or the input folder holds the mesh.ply
 Live (--live): a simulated real-time camera over the dataset. Frames arrive at their stamps (--rate
 scales the clock); the concurrent engine (``neb_slam_core.live``: mapping and loop closure in threads of
 their own) tracks the newest frame whenever it is free (at most ``live.max_gap_s`` after the last
-tracked one), and the frames before it are dropped. The run directory then holds the tracked frames
+processed one), and the frames before it are dropped. The run directory then holds the tracked frames
 only, and metrics.json adds frames in, frames dropped, tracked frames per second and the mapping lag.
 Without --live every frame is processed in the deterministic order of the paper's loop.
 

@@ -117,3 +117,20 @@ def test_live_slam_tracks_and_integrates_every_keyframe(frames):
     ate_lockstep = 100 * evaluate_ate(lockstep.trajectory(), gt).rmse_m
     assert ate_lockstep < 1.0, ate_lockstep
     assert abs(ate_live - ate_lockstep) < 0.2, (ate_live, ate_lockstep)
+
+
+def test_keyframes_follow_the_stamps_when_every_s_is_set(frames):
+    """With the frame counts out of reach (every 100th), ``keyframes.every_s`` 0.09 s at the scene's 30 Hz
+    makes every third frame (0.1 s apart; two frames are 0.067 s) a keyframe, and the map is optimised
+    after each."""
+    stamps = np.array([f.stamp_ns for f in frames[:10]])
+    assert np.allclose(np.diff(stamps), 1e9 / 30, atol=1e6)
+    cfg = load_config(
+        "ci", overrides=["keyframes.every=100", "mapping.every=100", "keyframes.every_s=0.09", "loop.enabled=false"]
+    )
+    slam = Slam(cfg, frames[0].T_world_cam)
+    results = [slam.process(f) for f in frames[:10]]
+    assert all(r.tracking_ok for r in results)
+    by_time = [r.frame_index for r in results if r.is_keyframe and r.new_block_id is None]
+    assert by_time == [3, 6, 9], [(r.frame_index, r.is_keyframe, r.new_block_id) for r in results]
+    assert all(r.mapped for r in results if r.is_keyframe)

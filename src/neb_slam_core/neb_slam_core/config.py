@@ -254,6 +254,11 @@ class TrackingConfig:
 
     ``gn_stop_step_m`` 0.5 mm: the objective's minimum itself moves by millimetres between two draws of
     the ``n_rays`` pixels, so converging much further than that buys nothing but steps.
+
+    ``coarse_rays`` (``gauss_newton`` only; 0: off, the paper's single stage): a first stage on that many
+    of the ``n_rays`` pixels, until a step moves less than ``coarse_stop_step_m``, then the stage on all
+    of them from its pose. Each stage takes at most ``iterations`` steps. A prediction far from the
+    minimum (frames dropped, fast motion) then costs cheap steps instead of full ones.
     """
 
     n_rays: int = 1024
@@ -268,14 +273,23 @@ class TrackingConfig:
     gn_stop_step_m: float = 5e-4
     motion_model: str = "frames"
     max_extrapolation: float = 4.0
+    coarse_rays: int = 0
+    coarse_stop_step_m: float = 2e-3
 
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    """Keyframes: every ``every``-th frame plus allocating frames; each keeps ``pixel_fraction`` of its pixels."""
+    """Keyframes: every ``every``-th frame plus allocating frames; each keeps ``pixel_fraction`` of its pixels.
+
+    ``every_s`` (0: off, the paper's count only): a tracked frame stamped at least this long after the
+    last keyframe is a keyframe too, and the map is optimised after it. A live engine that tracks only
+    some of the camera's frames counts them too slowly (every 5th tracked frame is seconds of video apart),
+    so its map would lag behind the camera; stamps do not depend on how many frames were processed.
+    """
 
     every: int = 5
     pixel_fraction: float = 0.05
+    every_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -335,7 +335,9 @@ class Frontend:
         # paper's setting, this adds no keyframe)
         # (the first frame on a continued map is always a keyframe: frame poses hang off keyframes)
         c = self.cfg
-        map_now = (ok or index == 0) and (index % c.mapping.every == 0 or new_block is not None)
+        map_now = (ok or index == 0) and (
+            index % c.mapping.every == 0 or new_block is not None or self._keyframe_due(frame.stamp_ns)
+        )
         is_keyframe = (ok or index == 0) and (index % c.keyframes.every == 0 or map_now)
         keyframe_id = self._add_keyframe(T) if is_keyframe else None
         self._record(frame.stamp_ns, T)
@@ -442,6 +444,14 @@ class Frontend:
                 )
         self._residuals.append(tracked.depth_residual_m)
         return True, ""
+
+    def _keyframe_due(self, stamp_ns: int) -> bool:
+        """``keyframes.every_s`` has passed since the last keyframe's stamp."""
+        every_s = self.cfg.keyframes.every_s
+        if every_s <= 0 or not self._keyframe_frames:
+            return False
+        last_ns = self._frames[self._keyframe_frames[-1]].stamp_ns
+        return stamp_ns - last_ns >= every_s * 1e9
 
     def _allocate(self, frame: RgbdFrame, T: np.ndarray):
         pts = backproject_depth(frame.depth_m, frame.intrinsics, T)

@@ -64,10 +64,11 @@ def test_normal_equations_equal_autograd_gradient_of_the_objective(fitted_small_
     assert np.all(np.linalg.eigvalsh(H) > 0)  # six observable directions: a well-posed step
 
 
+@pytest.mark.parametrize("coarse_rays", [0, 256], ids=["one-stage", "coarse-stage"])
 @pytest.mark.parametrize("start", [(0.02, 1.0), (0.04, 2.0)], ids=["2cm-1deg", "4cm-2deg"])
-def test_gauss_newton_recovers_a_perturbed_pose(fitted_small_map, start):
+def test_gauss_newton_recovers_a_perturbed_pose(fitted_small_map, start, coarse_rays):
     fm = fitted_small_map
-    cfg = TrackingConfig(n_rays=1024, iterations=8, method="gauss_newton")
+    cfg = TrackingConfig(n_rays=1024, iterations=8, method="gauss_newton", coarse_rays=coarse_rays)
     rng = np.random.default_rng(3)
     for frame in fm.held_out[:3]:
         direction = rng.normal(size=3)
@@ -78,7 +79,7 @@ def test_gauss_newton_recovers_a_perturbed_pose(fitted_small_map, start):
         result = Tracker(cfg, fm.render, seed=0).track(fm.block_map, frame, T0)
         trans, rot = pose_error(result.T_world_cam, frame.T_world_cam)
         assert trans < 0.003 and rot < 0.15, (trans, rot)
-        assert result.iterations <= cfg.iterations
+        assert result.iterations <= cfg.iterations * (2 if coarse_rays else 1)  # at most `iterations` a stage
 
 
 def test_adam_reduces_the_error_of_a_perturbed_pose(fitted_small_map):
@@ -136,3 +137,27 @@ def test_spatial_gradients_match_autograd(fitted_small_map):
         # over all points (what enters the Gauss-Newton sums) the face crossings weigh little
         total = float((fd[k] - auto[k]).norm(dim=1).mean() / auto[k].norm(dim=1).mean())
         assert total < 0.05, (k, total)
+
+
+def test_a_coarse_stage_of_all_the_rays_is_no_coarse_stage(fitted_small_map):
+    """``coarse_rays`` at or above ``n_rays`` leaves one stage: the same pose to the bit."""
+    fm = fitted_small_map
+    frame = fm.held_out[0]
+    T0 = perturbed(frame.T_world_cam, np.array([0.02, 0.0, -0.01]), np.array([0.0, 1.0, 0.5]))
+    poses = []
+    for coarse in (0, 512):
+        cfg = TrackingConfig(n_rays=512, iterations=6, method="gauss_newton", coarse_rays=coarse)
+        poses.append(Tracker(cfg, fm.render, seed=0).track(fm.block_map, frame, T0).T_world_cam)
+    assert np.array_equal(poses[0], poses[1])
+
+
+def test_the_coarse_stage_brings_a_far_start_closer_before_the_full_stage(fitted_small_map):
+    """From 4 cm and 2 degrees off, the coarse stage (256 of 1024 rays) alone takes the pose to within a
+    centimetre, so the stage on all rays starts inside its basin."""
+    fm = fitted_small_map
+    frame = fm.held_out[1]
+    T0 = perturbed(frame.T_world_cam, np.array([0.0, 0.04, 0.0]), np.array([2.0, 0.0, 0.0]))
+    coarse_only = TrackingConfig(n_rays=256, iterations=8, method="gauss_newton", gn_stop_step_m=2e-3)
+    result = Tracker(coarse_only, fm.render, seed=0).track(fm.block_map, frame, T0)
+    trans, rot = pose_error(result.T_world_cam, frame.T_world_cam)
+    assert trans < 0.01 and rot < 0.5, (trans, rot)

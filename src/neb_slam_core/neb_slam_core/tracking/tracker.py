@@ -26,7 +26,14 @@ from ..render.sampling import sample_depths
 from ..scene.block_map import BlockMap
 from ..scene.freeze import frozen
 from ..types import RgbdFrame
-from .gauss_newton import apply_step, damped_step, evaluate_pose, normal_equations, spatial_gradients
+from .gauss_newton import (
+    PoseEvaluation,
+    apply_step,
+    damped_step,
+    evaluate_pose,
+    normal_equations,
+    spatial_gradients,
+)
 
 
 @dataclass
@@ -106,13 +113,40 @@ class Tracker:
     ) -> TrackingResult:
         """Damped Gauss-Newton on the same objective with one fixed set of stratified samples (so the
         objective is a deterministic function of the pose and each step is accepted only if it lowers
-        it). A rejected step costs one evaluation; an accepted one also its Jacobian."""
+        it). A rejected step costs one evaluation; an accepted one also its Jacobian.
+
+        With ``coarse_rays`` set, a coarse stage first solves on that many of the drawn pixels (a random
+        subset: the pixels are drawn in random order) until a step moves less than ``coarse_stop_step_m``;
+        the stage on all pixels then starts from its pose. Far from the minimum, where a poor prediction
+        costs many steps, each coarse step costs a fraction of a full one."""
         c = self.cfg
         z = sample_depths(px.depth_m, self.render_cfg.sampling, stratified=True, generator=self.generator)
         T = T_init
+        coarse_steps = 0
+        if 0 < c.coarse_rays < len(px):
+            n = c.coarse_rays
+            subset = PixelSamples(px.dirs_cam[:n], px.rgb[:n], px.depth_m[:n], px.uv[:n])
+            min_rays = max(1, c.min_valid_rays * n // len(px))
+            T, ev, coarse_steps = self._lm_stage(block_map, subset, z[:n], T, ids, c.coarse_stop_step_m, min_rays)
+        T, ev, steps = self._lm_stage(block_map, px, z, T, ids, c.gn_stop_step_m, c.min_valid_rays)
+        return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, coarse_steps + steps)
+
+    def _lm_stage(
+        self,
+        block_map: BlockMap,
+        px: PixelSamples,
+        z: torch.Tensor,
+        T: np.ndarray,
+        ids: list[int],
+        stop_step_m: float,
+        min_valid_rays: int,
+    ) -> tuple[np.ndarray, PoseEvaluation, int]:
+        """At most ``iterations`` Levenberg-Marquardt steps from ``T`` on the pixels ``px`` with sample
+        depths ``z``, until a step moves less than ``stop_step_m``: the pose, its evaluation, the steps."""
+        c = self.cfg
         ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids)
-        if ev.n_valid_rays < c.min_valid_rays:
-            return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, 0)
+        if ev.n_valid_rays < min_valid_rays:
+            return T, ev, 0
         H, g = normal_equations(ev, block_map, ids, self.gradients)
         damping = c.gn_damping
         steps = 0
@@ -123,15 +157,15 @@ class Tracker:
                 break
             T_new = apply_step(T, step)
             new = evaluate_pose(block_map, px, T_new, z, self.render_cfg, ids)
-            accepted = new.n_valid_rays >= c.min_valid_rays and new.cost < ev.cost
+            accepted = new.n_valid_rays >= min_valid_rays and new.cost < ev.cost
             if accepted:
                 T, ev = T_new, new
                 damping = max(damping / 3.0, 1e-7)
             else:
                 damping *= 8.0
             # a step of (omega, dt) moves the camera by |dt| and points 1 m ahead by about |omega| m more
-            if np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) < c.gn_stop_step_m:
+            if np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) < stop_step_m:
                 break
             if accepted and steps < c.iterations:
                 H, g = normal_equations(ev, block_map, ids, self.gradients)
-        return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, steps)
+        return T, ev, steps

@@ -12,13 +12,21 @@ import csv
 import io
 import json
 import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import trimesh
 
+import neb_slam_core
 from neb_slam_core.cli import run as run_cmd
 from neb_slam_core.cli.main import main
 from neb_slam_core.config_io import load_config
@@ -320,6 +328,48 @@ def test_second_ctrl_c_aborts_the_writing(small_scene, tmp_path, monkeypatch, ca
     assert "writing aborted" in capsys.readouterr().err
     assert len(read_tum_trajectory(out / "trajectory.txt")) == 2  # written before the mesh
     assert not (out / "mesh.ply").exists()
+
+
+def test_sigterm_writes_the_frames_processed_so_far_and_exits_143(small_scene, tmp_path):
+    # a real process and a real signal: the handler is installed by the command's entry point
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    package_parent = str(Path(neb_slam_core.__file__).resolve().parents[1])  # this checkout's code
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_parent, env.get("PYTHONPATH")) if p)
+    cmd = [sys.executable, "-m", "neb_slam_core.cli.main", "run", str(small_scene), "--config", "ci"]
+    cmd += ["--out", str(out), *TINY, "--set", "mapping.first_iterations=10"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stderr: list[str] = []
+    reader = threading.Thread(target=lambda: stderr.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 300
+        # the progress bar's "N/60" counts processed frames
+        while max((int(n) for n in re.findall(r"(\d+)/60 \[", "".join(stderr))), default=0) < 3:
+            assert proc.poll() is None, "".join(stderr)
+            assert time.monotonic() < deadline, "no progress: " + "".join(stderr)
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        stdout = proc.stdout.read()
+        code = proc.wait(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    reader.join(timeout=10)
+    err = "".join(stderr)
+    assert code == 143, err
+    assert "interrupted by SIGTERM" in err and "Traceback" not in err, err
+    m = json.loads((out / "metrics.json").read_text())
+    n = m["n_frames"]
+    assert m["status"] == "interrupted" and 3 <= n < 60, m
+    est = read_tum_trajectory(out / "trajectory.txt")
+    np.testing.assert_array_equal(est.stamps_ns, open_dataset(small_scene).stamps_ns[:n])
+    for name in ("map.pt", "mesh.ply", "timings.csv", "trajectory.png", "blocks.png"):
+        assert (out / name).is_file(), name
+    block_map, extra = load_map(out / "map.pt")
+    assert len(block_map) == m["n_blocks"] and extra["frame_indices"] == list(range(n))
+    assert stdout.strip().splitlines()[-1] == str(out)
 
 
 def test_engine_crash_writes_what_exists_then_reraises(small_scene, tmp_path, monkeypatch):

@@ -3,6 +3,9 @@
 Each sub-command lives in its own module of this package exposing ``HELP`` (one line),
 ``add_arguments(parser)`` and ``run(args) -> int``. Modules are imported only when their command runs,
 so ``neb-slam eval`` does not pay for torch or rosbags.
+
+Exit status: 0 on success, 2 for bad input (one line naming the file, option or value), 130 after Ctrl-C
+and 143 after SIGTERM, which every command handles as it handles Ctrl-C (:mod:`.interrupt`).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import logging
 import sys
 
 from ..errors import NebSlamError
+from .interrupt import describe, exit_status, sigterm_interrupts
 
 #: sub-command -> module in this package
 COMMANDS: dict[str, str] = {
@@ -46,13 +50,14 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
     )
     try:
-        return int(args._module.run(args) or 0)
+        with sigterm_interrupts():
+            return int(args._module.run(args) or 0)
     except NebSlamError as exc:
         print(f"neb-slam {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"neb-slam {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        print(f"neb-slam {args.command}: interrupted ({describe(exc)})", file=sys.stderr)
+        return exit_status(exc)
 
 
 if __name__ == "__main__":

@@ -34,10 +34,11 @@ processed one), and the frames before it are dropped. The run directory then hol
 only, and metrics.json adds frames in, frames dropped, tracked frames per second and the mapping lag.
 Without --live every frame is processed in the deterministic order of the paper's loop.
 
-Ctrl-C stops processing; everything computed so far (trajectory of the processed frames, map, mesh,
-metrics, plots) is then written and the command exits with code 130. A second Ctrl-C aborts the
-writing. A crash inside the engine also writes what exists before the error is reported. The last
-line printed is the run directory.
+Ctrl-C stops processing after the current frame; everything computed so far (trajectory of the
+processed frames, map, mesh, metrics, plots) is then written and the command exits with code 130.
+SIGTERM does the same and exits with code 143. A second Ctrl-C or SIGTERM aborts the writing. A crash
+inside the engine also writes what exists before the error is reported. The last line printed is the
+run directory.
 
 Examples:
     neb-slam run ../shared/data/tum_fr1_xyz_300 --frames 100
@@ -195,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import ConfigError, DatasetError
     from ..eval.run_report import RunOutputOptions, write_run
     from ..io.run_dir import RunDirectory, RunLog
+    from .interrupt import describe, exit_status
 
     # --- check everything before the (long) run starts
     dataset = open_dataset(args.source, args.format)
@@ -259,9 +261,9 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     try:
         if args.live:
-            status, live_metrics = _process_live(slam, dataset, indices, first, run_log, args.rate)
+            interrupt, live_metrics = _process_live(slam, dataset, indices, first, run_log, args.rate)
         else:
-            status, live_metrics = _process(slam, dataset, indices, first, run_log), {}
+            interrupt, live_metrics = _process(slam, dataset, indices, first, run_log), {}
     except Exception as exc:
         wall_s = time.perf_counter() - t_start
         log.error(
@@ -275,17 +277,18 @@ def run(args: argparse.Namespace) -> int:
             if args.live:
                 slam.close(timeout_s=60.0)
             write_run(run_dir, slam, run_log, options, "crashed", wall_s)
-        except KeyboardInterrupt:
-            log.error("writing aborted by Ctrl-C: %s is incomplete", run_dir.path)
+        except KeyboardInterrupt as again:
+            log.error("writing aborted by %s: %s is incomplete", describe(again), run_dir.path)
         except Exception as write_exc:  # report, but the original error is the one that matters
             log.error("writing the partial run failed too (%s: %s)", type(write_exc).__name__, write_exc)
         print(run_dir.path)
         raise
     wall_s = time.perf_counter() - t_start
-    if status == "interrupted":
+    status = "complete" if interrupt is None else "interrupted"
+    if interrupt is not None:
         print(
-            f"interrupted after {slam.n_frames} of {len(indices)} frames: writing what was computed "
-            f"(Ctrl-C again to abort)",
+            f"interrupted by {describe(interrupt)} after {slam.n_frames} of {len(indices)} frames: writing "
+            f"what was computed (Ctrl-C or SIGTERM again to abort)",
             file=sys.stderr,
         )
     try:
@@ -293,16 +296,17 @@ def run(args: argparse.Namespace) -> int:
         if live_metrics:
             summary.metrics.update(live_metrics)
             run_dir.write_metrics(summary.metrics)
-    except KeyboardInterrupt:
-        print(f"writing aborted: {run_dir.path} is incomplete", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as again:
+        print(f"writing aborted by {describe(again)}: {run_dir.path} is incomplete", file=sys.stderr)
+        return exit_status(again)
     _print_summary(summary)
     print(run_dir.path)
-    return 130 if status == "interrupted" else 0
+    return 0 if interrupt is None else exit_status(interrupt)
 
 
-def _process(slam, dataset, indices: range, first, run_log) -> str:
-    """The per-frame loop with its progress bar; returns 'complete' or 'interrupted' (Ctrl-C)."""
+def _process(slam, dataset, indices: range, first, run_log) -> KeyboardInterrupt | None:
+    """The per-frame loop with its progress bar; returns the interruption (Ctrl-C or SIGTERM, see
+    :mod:`.interrupt`) that stopped it after the current frame, or None when every frame was processed."""
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -321,21 +325,22 @@ def _process(slam, dataset, indices: range, first, run_log) -> str:
                     kf=len(slam.keyframes),
                     refresh=False,
                 )
-        except KeyboardInterrupt:
-            return "interrupted"
-    return "complete"
+        except KeyboardInterrupt as exc:
+            return exc
+    return None
 
 
-def _process_live(slam, dataset, indices: range, first, run_log, rate: float) -> tuple[str, dict]:
-    """The simulated real-time camera of ``--live`` (module docstring): returns the status and the live
-    figures for metrics.json. The engine is closed (its queued keyframes integrated) before it returns."""
+def _process_live(slam, dataset, indices: range, first, run_log, rate: float) -> tuple[KeyboardInterrupt | None, dict]:
+    """The simulated real-time camera of ``--live`` (module docstring): returns the interruption that
+    stopped it (None when every frame arrived) and the live figures for metrics.json. The engine is
+    closed (its queued keyframes integrated) before it returns."""
     import numpy as np
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     stamps = np.asarray(dataset.stamps_ns, dtype=np.int64)[np.asarray(indices)]
     arrival_s = (stamps - stamps[0]) * 1e-9 / rate  # when each frame reaches the engine, from the start
-    status, k = "complete", 0
+    interrupt, k = None, 0
     t0 = time.perf_counter()
     with logging_redirect_tqdm(), tqdm(total=len(indices), desc="live", unit="frame", dynamic_ncols=True) as bar:
         try:
@@ -356,11 +361,11 @@ def _process_live(slam, dataset, indices: range, first, run_log, rate: float) ->
                 bar.set_postfix(
                     tracked=slam.n_frames, dropped=k - slam.n_frames, lag=slam.stats.mapping_lag, refresh=False
                 )
-        except KeyboardInterrupt:
-            status = "interrupted"
+        except KeyboardInterrupt as exc:
+            interrupt = exc
     span_s = time.perf_counter() - t0
     slam.close()
-    return status, {"rate": rate, **slam.live_metrics(k, span_s)}
+    return interrupt, {"rate": rate, **slam.live_metrics(k, span_s)}
 
 
 def _print_summary(summary) -> None:

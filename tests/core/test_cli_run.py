@@ -11,9 +11,11 @@ import contextlib
 import csv
 import io
 import json
+import logging
 import math
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -164,7 +166,7 @@ def test_metrics_match_the_files_they_summarise(shared_run):
         "depth_l1_cm",
     ):
         assert key in m, key
-    assert m["status"] == "complete" and m["n_frames"] == len(SHARED_INDICES)
+    assert m["status"] == "complete" and m["n_frames"] == len(SHARED_INDICES) and m["frames_unreadable"] == 0
     assert math.isfinite(m["ate_rmse_cm"])
     # the ATE is that of the written files (as `neb-slam eval` would compute it)
     ate = evaluate_ate(read_tum_trajectory(out / "trajectory.txt"), read_tum_trajectory(out / "groundtruth.txt"))
@@ -383,6 +385,38 @@ def test_engine_crash_writes_what_exists_then_reraises(small_scene, tmp_path, mo
 
 
 # ------------------------------------------------------------------------------------- bad input
+
+
+def test_unreadable_frame_is_skipped_with_one_warning_and_counted(small_scene, tmp_path, caplog):
+    scene = tmp_path / "scene"
+    shutil.copytree(small_scene, scene)
+    depth_files = [ln.split()[1] for ln in (scene / "depth.txt").read_text().splitlines() if ln[:1] not in ("", "#")]
+    cut = scene / depth_files[5]  # frame 5 of the 8 processed: a PNG cut short, as by a full disk
+    cut.write_bytes(cut.read_bytes()[:100])
+    out = tmp_path / "run"
+    caplog.set_level(logging.WARNING)
+    code, stdout = run_cli(
+        ["run", str(scene), "--config", "ci", "--out", str(out), "--frames", "8", "--no-mesh", *TINY]
+    )
+    assert code == 0
+    est = read_tum_trajectory(out / "trajectory.txt")
+    np.testing.assert_array_equal(est.stamps_ns, open_dataset(scene).stamps_ns[[0, 1, 2, 3, 4, 6, 7]])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "complete" and m["n_frames"] == 7 and m["frames_unreadable"] == 1
+    warnings = [r.getMessage() for r in caplog.records if "could not be read" in r.getMessage()]
+    assert len(warnings) == 1 and str(cut) in warnings[0] and "skipped 1 frame " in warnings[0], warnings
+    assert "unreadable frames" in stdout and stdout.strip().splitlines()[-1] == str(out)
+
+
+def test_no_readable_frame_exits_2(small_scene, tmp_path, capsys):
+    scene = tmp_path / "scene"
+    shutil.copytree(small_scene, scene)
+    for png in (scene / "depth").iterdir():
+        png.write_bytes(b"")
+    out = tmp_path / "run"
+    assert main(["run", str(scene), "--config", "ci", "--out", str(out), "--frames", "3"]) == 2
+    assert "none of the 3 selected frames can be read" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_missing_dataset_exits_2_naming_it(tmp_path, capsys):

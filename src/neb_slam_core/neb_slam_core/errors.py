@@ -22,6 +22,20 @@ class DatasetError(NebSlamError):
         super().__init__(problem if path is None else f"{path}: {problem}")
 
 
+class UnreadableFrameError(DatasetError):
+    """The colour or depth data of one frame cannot be read: an image file that is missing, truncated or
+    not decodable, or a bag message that does not decode. The rest of the dataset may be fine.
+
+    Loaders raise it from ``Dataset._load``, and ``Dataset.__getitem__`` sets ``index`` to the frame's
+    index. A caller that can go on without the frame (``neb-slam run``) catches this type and skips the
+    frame; every other caller gets the :class:`DatasetError` it is.
+    """
+
+    def __init__(self, path: str | Path | None, problem: str, index: int | None = None):
+        super().__init__(path, problem)
+        self.index = index
+
+
 class ConfigError(NebSlamError):
     """A configuration value is missing, of the wrong type or out of range."""
 

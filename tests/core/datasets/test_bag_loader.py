@@ -24,7 +24,7 @@ from neb_slam_core.datasets import open_dataset
 from neb_slam_core.datasets.bag import BagDataset
 from neb_slam_core.datasets.base import Dataset
 from neb_slam_core.datasets.tum import TumDataset
-from neb_slam_core.errors import DatasetError
+from neb_slam_core.errors import DatasetError, UnreadableFrameError
 from neb_slam_core.geometry.se3 import make_pose, pose_to_tum
 from neb_slam_core.io.bag import BagWriteOptions, write_bag
 from neb_slam_core.types import Intrinsics, RgbdFrame
@@ -295,6 +295,18 @@ def test_unpaired_frames_are_skipped_with_one_warning(tmp_path, caplog):
     # a wider window pairs colour 3 with the late depth image as well
     caplog.clear()
     assert len(BagDataset(bag, sync_slop_s=0.06)) == 3
+
+
+def test_image_whose_data_does_not_decode_is_an_unreadable_frame(tmp_path):
+    msgs = simple_messages(3)
+    topic, t, good = msgs[5]  # frame 1's depth: keep the header and size, cut the pixels short
+    assert topic == "/camera/depth/image"
+    msgs[5] = (topic, t, type(good)(**{**good.__dict__, "data": good.data[:10]}))
+    ds = BagDataset(write_ros2(tmp_path / "b", msgs))
+    assert ds[0].stamp_ns == T0 and ds[2].stamp_ns == T0 + 2 * DT
+    with pytest.raises(UnreadableFrameError, match=r"topic /camera/depth/image: 16UC1 image 8x6") as err:
+        ds[1]
+    assert err.value.index == 1 and err.value.path == tmp_path / "b"
 
 
 def test_ground_truth_is_not_borrowed_by_a_frame_without_one(tmp_path):

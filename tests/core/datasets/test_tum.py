@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import cv2
@@ -10,8 +11,9 @@ import numpy as np
 import pytest
 
 from neb_slam_core.datasets import open_dataset
+from neb_slam_core.datasets.base import FrameSkipper
 from neb_slam_core.datasets.tum import TumDataset
-from neb_slam_core.errors import DatasetError
+from neb_slam_core.errors import DatasetError, UnreadableFrameError
 from neb_slam_core.types import Intrinsics
 
 S = math.sqrt(0.5)
@@ -141,8 +143,32 @@ def test_bad_groundtruth(fr2):
 
 def test_colour_of_wrong_size(fr2, fake):
     fake.rgb(fr2 / "rgb" / "1.033000.png", size=(320, 240))
-    with pytest.raises(DatasetError, match=r"1\.033000\.png: colour image is 320x240, expected 640x480"):
+    with pytest.raises(DatasetError, match=r"1\.033000\.png: colour image is 320x240, expected 640x480") as err:
         TumDataset(fr2)[1]
+    assert not isinstance(err.value, UnreadableFrameError)  # a wrong image is not skipped as damage
+
+
+def test_truncated_or_missing_image_is_an_unreadable_frame_that_a_skipper_skips(fr2, caplog, capfd):
+    depth = fr2 / "depth" / "1.040000.png"  # frame 1's depth
+    data = depth.read_bytes()
+    assert len(data) > 100
+    depth.write_bytes(data[:100])
+    (fr2 / "rgb" / "1.100000.png").unlink()  # frame 2's colour
+    ds = TumDataset(fr2)
+    with pytest.raises(UnreadableFrameError, match=r"1\.040000\.png: depth image missing or unreadable") as err:
+        ds[1]
+    assert err.value.index == 1 and err.value.path == depth
+    caplog.set_level(logging.WARNING)
+    caplog.clear()
+    skipper = FrameSkipper(ds)
+    assert [skipper.read(i) is None for i in range(len(ds))] == [False, True, True]
+    assert len(skipper) == 2 and not caplog.records  # nothing logged per frame
+    assert capfd.readouterr().err == ""  # nor printed by OpenCV
+    skipper.warn()
+    (record,) = caplog.records
+    text = record.getMessage()
+    assert "skipped 2 frames whose colour or depth could not be read" in text
+    assert f"frame 1: {depth}: depth image" in text and f"frame 2: {fr2 / 'rgb' / '1.100000.png'}: colour" in text
 
 
 def test_no_groundtruth_file(fr2):

@@ -34,6 +34,11 @@ processed one), and the frames before it are dropped. The run directory then hol
 only, and metrics.json adds frames in, frames dropped, tracked frames per second and the mapping lag.
 Without --live every frame is processed in the deterministic order of the paper's loop.
 
+Damaged recordings: a frame whose colour or depth cannot be read (a missing or truncated image file, a
+bag message that does not decode) is skipped, the run goes on, and one warning at the end names the
+skipped files; metrics.json counts them in ``frames_unreadable``. Any other bad frame (an image of the
+wrong size, say) stops the run with an error naming the file.
+
 Ctrl-C stops processing after the current frame; everything computed so far (trajectory of the
 processed frames, map, mesh, metrics, plots) is then written and the command exits with code 130.
 SIGTERM does the same and exits with code 143. A second Ctrl-C or SIGTERM aborts the writing. A crash
@@ -54,6 +59,11 @@ import logging
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ..datasets.base import FrameSkipper
+    from ..types import RgbdFrame
 
 HELP = "run SLAM offline on a dataset folder or bag and write a run directory (trajectory, map, mesh, metrics)"
 
@@ -193,6 +203,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..datasets import open_dataset
+    from ..datasets.base import FrameSkipper
     from ..errors import ConfigError, DatasetError
     from ..eval.run_report import RunOutputOptions, write_run
     from ..io.run_dir import RunDirectory, RunLog
@@ -218,7 +229,8 @@ def run(args: argparse.Namespace) -> int:
     from ..slam import Slam, load_map_for
 
     block_map = None if args.map is None else load_map_for(cfg, args.map)
-    first = dataset[indices[0]]
+    skipper = FrameSkipper(dataset)
+    first, indices = _first_readable(skipper, indices)
     if first.T_world_cam is not None:
         T_world_first = first.T_world_cam
     else:
@@ -261,9 +273,9 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     try:
         if args.live:
-            interrupt, live_metrics = _process_live(slam, dataset, indices, first, run_log, args.rate)
+            interrupt, live_metrics = _process_live(slam, skipper, indices, first, run_log, args.rate)
         else:
-            interrupt, live_metrics = _process(slam, dataset, indices, first, run_log), {}
+            interrupt, live_metrics = _process(slam, skipper, indices, first, run_log), {}
     except Exception as exc:
         wall_s = time.perf_counter() - t_start
         log.error(
@@ -273,10 +285,11 @@ def run(args: argparse.Namespace) -> int:
             slam.n_frames,
             run_dir.path,
         )
+        skipper.warn()
         try:
             if args.live:
                 slam.close(timeout_s=60.0)
-            write_run(run_dir, slam, run_log, options, "crashed", wall_s)
+            write_run(run_dir, slam, run_log, options, "crashed", wall_s, {"frames_unreadable": len(skipper)})
         except KeyboardInterrupt as again:
             log.error("writing aborted by %s: %s is incomplete", describe(again), run_dir.path)
         except Exception as write_exc:  # report, but the original error is the one that matters
@@ -284,6 +297,7 @@ def run(args: argparse.Namespace) -> int:
         print(run_dir.path)
         raise
     wall_s = time.perf_counter() - t_start
+    skipper.warn()
     status = "complete" if interrupt is None else "interrupted"
     if interrupt is not None:
         print(
@@ -292,10 +306,8 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     try:
-        summary = write_run(run_dir, slam, run_log, options, status, wall_s)
-        if live_metrics:
-            summary.metrics.update(live_metrics)
-            run_dir.write_metrics(summary.metrics)
+        extra_metrics = {"frames_unreadable": len(skipper), **live_metrics}
+        summary = write_run(run_dir, slam, run_log, options, status, wall_s, extra_metrics)
     except KeyboardInterrupt as again:
         print(f"writing aborted by {describe(again)}: {run_dir.path} is incomplete", file=sys.stderr)
         return exit_status(again)
@@ -304,9 +316,23 @@ def run(args: argparse.Namespace) -> int:
     return 0 if interrupt is None else exit_status(interrupt)
 
 
-def _process(slam, dataset, indices: range, first, run_log) -> KeyboardInterrupt | None:
+def _first_readable(skipper: FrameSkipper, indices: range) -> tuple[RgbdFrame, range]:
+    """The first selected frame that can be read and the selection from it on; :class:`DatasetError`
+    when none can."""
+    from ..errors import DatasetError
+
+    for k, i in enumerate(indices):
+        frame = skipper.read(i)
+        if frame is not None:
+            return frame, indices[k:]
+    skipper.warn()
+    raise DatasetError(skipper.dataset.root, f"none of the {len(indices)} selected frames can be read")
+
+
+def _process(slam, skipper: FrameSkipper, indices: range, first, run_log) -> KeyboardInterrupt | None:
     """The per-frame loop with its progress bar; returns the interruption (Ctrl-C or SIGTERM, see
-    :mod:`.interrupt`) that stopped it after the current frame, or None when every frame was processed."""
+    :mod:`.interrupt`) that stopped it after the current frame, or None when every frame was processed.
+    Frames ``skipper`` cannot read are skipped (it keeps them for the summary warning)."""
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -314,7 +340,10 @@ def _process(slam, dataset, indices: range, first, run_log) -> KeyboardInterrupt
     with logging_redirect_tqdm(), tqdm(total=len(indices), desc="slam", unit="frame", dynamic_ncols=True) as bar:
         try:
             for k, i in enumerate(indices):
-                frame = first if k == 0 else dataset[i]
+                frame = first if k == 0 else skipper.read(i)
+                if frame is None:
+                    bar.update(1)
+                    continue
                 run_log.begin(frame)
                 result = slam.process(frame)
                 run_log.end(result)
@@ -330,17 +359,20 @@ def _process(slam, dataset, indices: range, first, run_log) -> KeyboardInterrupt
     return None
 
 
-def _process_live(slam, dataset, indices: range, first, run_log, rate: float) -> tuple[KeyboardInterrupt | None, dict]:
+def _process_live(
+    slam, skipper: FrameSkipper, indices: range, first, run_log, rate: float
+) -> tuple[KeyboardInterrupt | None, dict]:
     """The simulated real-time camera of ``--live`` (module docstring): returns the interruption that
-    stopped it (None when every frame arrived) and the live figures for metrics.json. The engine is
-    closed (its queued keyframes integrated) before it returns."""
+    stopped it (None when every frame arrived) and the live figures for metrics.json, where frames in
+    and dropped count readable frames only. The engine is closed (its queued keyframes integrated)
+    before it returns."""
     import numpy as np
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    stamps = np.asarray(dataset.stamps_ns, dtype=np.int64)[np.asarray(indices)]
+    stamps = np.asarray(skipper.dataset.stamps_ns, dtype=np.int64)[np.asarray(indices)]
     arrival_s = (stamps - stamps[0]) * 1e-9 / rate  # when each frame reaches the engine, from the start
-    interrupt, k = None, 0
+    interrupt, k, n_unreadable = None, 0, 0
     t0 = time.perf_counter()
     with logging_redirect_tqdm(), tqdm(total=len(indices), desc="live", unit="frame", dynamic_ncols=True) as bar:
         try:
@@ -352,7 +384,12 @@ def _process_live(slam, dataset, indices: range, first, run_log, rate: float) ->
                     time.sleep(arrival_s[k] - now)
                     continue
                 chosen = k + slam.next_frame(stamps[k : newest + 1])
-                frame = first if chosen == 0 else dataset[indices[chosen]]
+                frame = first if chosen == 0 else skipper.read(indices[chosen])
+                if frame is None:
+                    n_unreadable += 1
+                    bar.update(chosen + 1 - k)
+                    k = chosen + 1
+                    continue
                 run_log.begin(frame)
                 result = slam.process(frame)
                 run_log.end(result)
@@ -365,7 +402,7 @@ def _process_live(slam, dataset, indices: range, first, run_log, rate: float) ->
             interrupt = exc
     span_s = time.perf_counter() - t0
     slam.close()
-    return interrupt, {"rate": rate, **slam.live_metrics(k, span_s)}
+    return interrupt, {"rate": rate, **slam.live_metrics(k - n_unreadable, span_s)}
 
 
 def _print_summary(summary) -> None:
@@ -395,6 +432,8 @@ def _print_summary(summary) -> None:
             ("completion ratio", fmt("completion_ratio_pct", "%", 2)),
             ("depth L1", fmt("depth_l1_cm", "cm")),
         ]
+    if m.get("frames_unreadable"):
+        rows.append(("unreadable frames", f"{m['frames_unreadable']} skipped (see the warning above)"))
     for s in summary.skipped:
         rows.append(("skipped", s))
     width = max(len(name) for name, _ in rows)

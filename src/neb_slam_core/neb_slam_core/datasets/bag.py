@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DatasetError
+from ..errors import DatasetError, UnreadableFrameError
 from ..io.bag import (
     CAMERA_INFO_TYPE,
     COLOUR_ENCODINGS,
@@ -412,7 +412,9 @@ class BagDataset(Dataset):
     def _read_pair(self, rgb_row: int, depth_row: int):
         """Deserialised (colour, depth) messages of one frame, fetched in one pass over the bag.
 
-        One reader call covers both log times, so a storage chunk holding both is read once.
+        One reader call covers both log times, so a storage chunk holding both is read once. Storage that
+        fails to give them, or a message that does not decode, makes the frame unreadable
+        (:class:`UnreadableFrameError`).
         """
         reader = self._open()
         wanted = [(self._rgb_ix, rgb_row), (self._depth_ix, depth_row)]
@@ -428,16 +430,21 @@ class BagDataset(Dataset):
                 if (conn.id, log_ns, n) in keys:
                     found[(conn.id, log_ns, n)] = (conn, raw)
         except Exception as exc:  # reader-specific errors for corrupt storage
-            raise DatasetError(self.root, f"cannot read messages between {lo} and {hi} ns: {exc}") from None
+            raise UnreadableFrameError(self.root, f"cannot read messages between {lo} and {hi} ns: {exc}") from None
         out = []
         for key, (ix, r) in zip(keys, wanted):
             if key not in found:
                 topic = self._conns[int(ix.conn[r])].topic
-                raise DatasetError(
+                raise UnreadableFrameError(
                     self.root, f"topic {topic}: message at {key[1]} ns vanished since the bag was indexed"
                 )
             conn, raw = found[key]
-            out.append(self._deserialize(reader, raw, conn))
+            try:
+                out.append(reader.deserialize(raw, conn.msgtype))
+            except Exception as exc:  # rosbags raises several error types for corrupt data
+                raise UnreadableFrameError(
+                    self.root, f"topic {conn.topic}: the {conn.msgtype} message at {key[1]} ns does not decode: {exc}"
+                ) from None
         return out[0], out[1]
 
     def _load(self, i: int) -> RgbdFrame:
@@ -446,11 +453,11 @@ class BagDataset(Dataset):
         try:
             rgb = decode_rgb(rgb_msg)
         except ValueError as exc:
-            raise DatasetError(self.root, f"topic {rgb_topic}: {exc}") from None
+            raise UnreadableFrameError(self.root, f"topic {rgb_topic}: {exc}") from None
         try:
             depth = decode_depth_m(depth_msg, self.depth_scale)
         except ValueError as exc:
-            raise DatasetError(self.root, f"topic {depth_topic}: {exc}") from None
+            raise UnreadableFrameError(self.root, f"topic {depth_topic}: {exc}") from None
         pose = None if self._poses is None or self._poses[i] is None else self._poses[i].copy()
         extras = {"distortion": self.distortion} if self.distortion else {}
         return RgbdFrame(rgb, depth, self.intrinsics, int(self._stamps_ns[i]), pose, extras=extras)

@@ -3,6 +3,11 @@
 A loader is a :class:`Dataset`: it indexes its files when constructed (cheap) and reads one frame per
 ``__getitem__`` (lazy). Loaders register themselves under a format name with :func:`register`;
 :func:`open_dataset` opens a path by name or by asking each loader whether it recognises the layout.
+
+A frame whose colour or depth cannot be read raises :class:`~neb_slam_core.errors.UnreadableFrameError`
+(every loader: the shared image readers below raise it, the bag loader raises it for a message that
+does not decode), so that a caller decides in one place, for every format, whether to skip the frame:
+:class:`FrameSkipper` does that and reports the skipped frames in one warning.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError, UnreadableFrameError
 from ..types import Intrinsics, RgbdFrame
 
 log = logging.getLogger(__name__)
@@ -53,7 +58,11 @@ class Dataset(ABC, Sequence[RgbdFrame]):
         if not -n <= i < n:
             raise IndexError(f"{self.name} dataset {self.root}: frame {i} out of range (0..{n - 1})")
         i = i % n
-        frame = self._load(i)
+        try:
+            frame = self._load(i)
+        except UnreadableFrameError as exc:
+            exc.index = i
+            raise
         frame.index = i
         return frame
 
@@ -131,10 +140,15 @@ def _import_loaders() -> None:
 
 
 def read_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
-    """Read a colour image as ``(H, W, 3)`` uint8 RGB; resize (area) to ``size`` = (W, H) when given."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    """Read a colour image as ``(H, W, 3)`` uint8 RGB; resize (area) to ``size`` = (W, H) when given.
+
+    A missing or undecodable file (truncated, say) raises :class:`UnreadableFrameError`; an image of the
+    wrong kind raises :class:`DatasetError`.
+    """
+    # a missing file is caught before OpenCV, which would print a warning of its own for each one
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if Path(path).is_file() else None
     if img is None:
-        raise DatasetError(path, "colour image missing or unreadable (expected an 8-bit PNG/JPEG)")
+        raise UnreadableFrameError(path, "colour image missing or unreadable (expected an 8-bit PNG/JPEG)")
     if img.dtype != np.uint8:
         raise DatasetError(path, f"colour image must be 8-bit, got {img.dtype}")
     if img.ndim == 2:
@@ -153,11 +167,12 @@ def read_depth(
 ) -> np.ndarray:
     """Read a 16-bit depth PNG as float32 metres (``value / scale``; 0 and ``invalid_value`` -> 0).
 
-    ``expected_size`` = (W, H) is checked when given.
+    ``expected_size`` = (W, H) is checked when given. A missing or undecodable file (truncated, say)
+    raises :class:`UnreadableFrameError`; an image of the wrong kind or size raises :class:`DatasetError`.
     """
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if Path(path).is_file() else None
     if raw is None:
-        raise DatasetError(path, "depth image missing or unreadable (expected a 16-bit single-channel PNG)")
+        raise UnreadableFrameError(path, "depth image missing or unreadable (expected a 16-bit single-channel PNG)")
     if raw.ndim != 2 or raw.dtype != np.uint16:
         shape = "x".join(map(str, raw.shape))
         raise DatasetError(path, f"depth image must be 16-bit single-channel, got {raw.dtype} with shape {shape}")
@@ -260,6 +275,49 @@ def warn_skipped(root: Path, n_skipped: int, n_total: int, why: str) -> None:
     """One summary warning for frames a loader skipped (never one warning per frame)."""
     if n_skipped:
         log.warning("%s: skipped %d of %d frames: %s", root, n_skipped, n_total, why)
+
+
+class FrameSkipper:
+    """Reads frames of a dataset by index and skips those whose colour or depth cannot be read.
+
+    :meth:`read` returns None for such a frame and keeps its :class:`UnreadableFrameError`;
+    :meth:`warn` then reports all of them in one warning naming each file (a run over a damaged
+    recording gets one summary, not a warning per frame). Every other error propagates.
+    """
+
+    #: skipped frames named one by one in the warning; the rest are counted
+    MAX_NAMED = 20
+
+    def __init__(self, dataset: Dataset):
+        self.dataset = dataset
+        self.unreadable: list[UnreadableFrameError] = []
+
+    def read(self, i: int) -> RgbdFrame | None:
+        """Frame ``i``, or None (recorded) when its colour or depth cannot be read."""
+        try:
+            return self.dataset[i]
+        except UnreadableFrameError as exc:
+            self.unreadable.append(exc)
+            return None
+
+    def __len__(self) -> int:
+        """How many frames were skipped so far."""
+        return len(self.unreadable)
+
+    def warn(self) -> None:
+        """One warning naming the skipped frames' files (nothing when none was skipped)."""
+        if not self.unreadable:
+            return
+        named = [f"frame {exc.index}: {exc}" for exc in self.unreadable[: self.MAX_NAMED]]
+        more = len(self.unreadable) - len(named)
+        log.warning(
+            "%s: skipped %d frame%s whose colour or depth could not be read: %s%s",
+            self.dataset.root,
+            len(self.unreadable),
+            "" if len(self.unreadable) == 1 else "s",
+            "; ".join(named),
+            f"; and {more} more" if more else "",
+        )
 
 
 def check_intrinsics(intr: Intrinsics, source: Path | str) -> Intrinsics:

@@ -139,8 +139,12 @@ def write_run(
     options: RunOutputOptions,
     status: str = "complete",
     wall_s: float = 0.0,
+    extra_metrics: dict | None = None,
 ) -> RunSummary:
     """Write every file of the run directory from the engine's current state (see the module docstring).
+
+    ``extra_metrics`` are figures the caller knows and the engine does not (``neb-slam run``: the frames
+    it could not read, the live figures); they go into metrics.json with the rest.
 
     Steps that cannot be done (ATE with fewer than 3 ground-truth poses, a mesh from an empty map) are
     skipped with a warning and listed in ``RunSummary.skipped``.
@@ -170,6 +174,7 @@ def write_run(
     summary.written.append(run_dir.write_loops(loops))
 
     metrics = run_metrics(slam, frames, wall_s, status)
+    metrics.update(extra_metrics or {})
     ate = None
     if len(gt):
         try:

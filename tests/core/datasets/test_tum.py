@@ -135,10 +135,21 @@ def test_bad_index_line(fr2):
         TumDataset(fr2)
 
 
-def test_bad_groundtruth(fr2):
-    (fr2 / "groundtruth.txt").write_text("1.0 0 0 0 0 0 0 2\n")
-    with pytest.raises(DatasetError, match=r"groundtruth\.txt: pose 0 is not finite or its quaternion is not unit"):
-        TumDataset(fr2)
+def test_bad_groundtruth_lines_are_skipped_with_one_warning(fr2, caplog):
+    (fr2 / "groundtruth.txt").write_text(
+        "# timestamp tx ty tz qx qy qz qw\n"
+        "0.9900 nan 2.0 3.0 0 0 0 1\n"  # line 2: frame 1.000's pose, not finite
+        "1.0350 -1.0 0.5 0.0 0 0 0 1\n"
+        "1.0400 1.0 2.0\n"  # line 4: cut short
+        "1.1000 0 0 0 0 0 0 2\n"  # line 5: frame 1.100's pose, quaternion not unit length
+    )
+    caplog.set_level(logging.WARNING)
+    ds = TumDataset(fr2)
+    assert ds.has_ground_truth
+    assert ds[0].T_world_cam is None and ds[2].T_world_cam is None  # their lines were skipped
+    np.testing.assert_array_equal(ds[1].T_world_cam[:3, 3], [-1.0, 0.5, 0.0])
+    warnings = [r.getMessage() for r in caplog.records if "bad line" in r.getMessage()]
+    assert len(warnings) == 1 and "groundtruth.txt: skipped 3 bad lines (2, 4, 5;" in warnings[0]
 
 
 def test_colour_of_wrong_size(fr2, fake):

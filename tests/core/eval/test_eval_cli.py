@@ -91,6 +91,25 @@ def test_eval_reports_unmatched_files_clearly(tmp_path, capsys):
     assert "--est and --gt" in capsys.readouterr().err
 
 
+def test_eval_skips_bad_ground_truth_lines_but_not_bad_estimate_lines(tmp_path, capsys, caplog):
+    run = write_run(tmp_path / "run")
+    gt_lines = (run / "groundtruth.txt").read_text().splitlines()
+    data = [k for k, ln in enumerate(gt_lines) if not ln.startswith("#")]
+    gt_lines[data[2]] = gt_lines[data[2]].rsplit(" ", 1)[0] + " nan"  # the third pose: not finite
+    (run / "groundtruth.txt").write_text("\n".join(gt_lines) + "\n")
+    assert main(["eval", str(run), "--no-plots"]) == 0
+    assert json.loads((run / "metrics.json").read_text())["n_poses"] == 7
+    assert any(f"skipped 1 bad line ({data[2] + 1};" in r.getMessage() for r in caplog.records)
+
+    est_lines = (run / "trajectory.txt").read_text().splitlines()
+    est_lines[data[4]] = est_lines[data[4]][:20]  # cut short, as by a crash while writing
+    (run / "trajectory.txt").write_text("\n".join(est_lines) + "\n")
+    capsys.readouterr()
+    assert main(["eval", str(run), "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert f"trajectory.txt: line {data[4] + 1}: expected 8 numbers" in err
+
+
 def square(half: float, z: float) -> trimesh.Trimesh:
     v = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]], dtype=float)
     return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)

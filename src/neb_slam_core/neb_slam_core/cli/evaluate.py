@@ -14,6 +14,10 @@ the ground-truth camera poses when the intrinsics are known), Depth L1 over rand
 The reconstruction must be in the ground truth's world frame; --align-mesh maps it there with the ATE
 alignment first.
 
+Bad lines (not 8 numbers, non-finite, a quaternion that is not unit length): in the ground truth they
+are skipped with one warning naming them, and the rest is evaluated; in the estimate the first one is
+an error naming the file and the line (exit status 2).
+
 Examples:
     neb-slam eval runs/fr1_xyz
     neb-slam eval runs/replica_room0 --gt-mesh data/replica/room0_mesh.ply
@@ -92,8 +96,8 @@ def run(args: argparse.Namespace) -> int:
     from ..io.trajectory import read_tum_trajectory
 
     est_path, gt_path, out_dir = _resolve_paths(args)
-    est = read_tum_trajectory(est_path)
-    gt = read_tum_trajectory(gt_path)
+    est = read_tum_trajectory(est_path)  # an estimate is read whole: a bad line is an error naming it
+    gt = read_tum_trajectory(gt_path, skip_bad_lines=True)  # bad ground-truth lines: skipped, one warning
     metrics, ate = trajectory_metrics(
         est,
         gt,

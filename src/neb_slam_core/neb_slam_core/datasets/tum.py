@@ -1,7 +1,9 @@
 """TUM RGB-D benchmark folders: ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
 
 Colour and depth are associated by the benchmark's rule (nearest stamp within 0.02 s, each frame used
-once); the ground-truth pose is the nearest motion-capture sample within 0.02 s. Depth PNGs store
+once); the ground-truth pose is the nearest motion-capture sample within 0.02 s. Bad lines of
+``groundtruth.txt`` (malformed, non-finite) are skipped with one warning: ground truth only gives the
+first pose and the evaluation, and both can use the other lines. Depth PNGs store
 metres x 5000. Intrinsics are the benchmark's published values for the sensor named in the folder name
 (``freiburg1`` or ``fr1``, ...), or an explicit override. A folder may also carry ``intrinsics.json``
 (written by ``neb-slam synth`` and ``neb-slam convert``), which then takes precedence over the name.
@@ -124,7 +126,7 @@ class TumDataset(Dataset):
         self._poses: list[np.ndarray | None] | None = None
         gt_path = self.root / "groundtruth.txt"
         if gt_path.is_file():
-            gt = read_tum_trajectory(gt_path)
+            gt = read_tum_trajectory(gt_path, skip_bad_lines=True)
             idx = associate(self._stamps_ns, gt.stamps_ns, MAX_DT_NS)
             n_missing = int((idx < 0).sum())
             if n_missing:

@@ -15,6 +15,11 @@ better than the driver's); every image must have their size.
 Reading is lazy: the constructor reads the bag once to index it (per image: connection, log time and
 header stamp); ``dataset[i]`` then fetches just that frame's two messages by log time from a reader
 kept open (and reopened after a fork, so a worker process gets its own).
+
+Damaged ROS 2 bags (a recorder killed, a full disk): a storage file cut short, or a bag directory
+without metadata.yaml, is read up to the damage by :mod:`neb_slam_core.io.bag_salvage` instead of
+being refused, with one warning naming the file and what was lost. Any other damage is an error naming
+the bag.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ from ..io.bag import (
     pose_from_msg,
     stamp_ns_of,
 )
+from ..io.bag_salvage import STORAGE_SUFFIXES, salvage_bag
 from ..types import Intrinsics, RgbdFrame
 from .base import Dataset, associate_unique, check_intrinsics, register, warn_skipped
 
@@ -72,9 +78,10 @@ class _ImageIndex:
 
 
 def is_bag_path(path: Path) -> bool:
-    """A ROS 2 bag directory (with metadata.yaml) or a ``.mcap`` / ``.db3`` / ``.bag`` file."""
+    """A ROS 2 bag directory (with metadata.yaml, or with the ``.mcap`` / ``.db3`` files of a recorder
+    that never wrote it) or a ``.mcap`` / ``.db3`` / ``.bag`` file."""
     if path.is_dir():
-        return (path / "metadata.yaml").is_file()
+        return (path / "metadata.yaml").is_file() or any(p.suffix in STORAGE_SUFFIXES for p in path.iterdir())
     return path.is_file() and path.suffix in BAG_SUFFIXES
 
 
@@ -106,6 +113,7 @@ class BagDataset(Dataset):
     ):
         self._reader = None
         self._reader_pid = -1
+        self._salvaged = None  # the reader of a damaged bag (io.bag_salvage), kept across reopening
         self.root = Path(root)
         if not is_bag_path(self.root):
             raise DatasetError(
@@ -136,9 +144,14 @@ class BagDataset(Dataset):
     # reader lifetime
 
     def _open(self):
-        """The open AnyReader of this bag (opened on first use and again in a forked process)."""
+        """The open reader of this bag (opened on first use and again in a forked process): rosbags'
+        AnyReader, or for a damaged ROS 2 bag the salvaged part (module docstring)."""
         if self._reader is not None and self._reader_pid == os.getpid():
             return self._reader
+        if self._salvaged is not None:  # indexed once; its files reopen on their own
+            self._reader, self._reader_pid = self._salvaged, os.getpid()
+            self._conns = self._connection_table(self._salvaged)
+            return self._salvaged
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
@@ -148,7 +161,17 @@ class BagDataset(Dataset):
             reader = AnyReader([self.root], default_typestore=store)
             reader.open()
         except Exception as exc:  # rosbags raises reader-, storage- and format-specific errors
-            raise DatasetError(self.root, f"cannot open bag: {type(exc).__name__}: {exc}") from None
+            salvaged = None if is_ros1 else salvage_bag(self.root)
+            if salvaged is None:
+                raise DatasetError(self.root, f"cannot open bag: {type(exc).__name__}: {exc}") from None
+            log.warning(
+                "%s: rosbags cannot open it (%s: %s); reading it record by record up to the damage: %s",
+                self.root,
+                type(exc).__name__,
+                exc,
+                salvaged.report,
+            )
+            self._salvaged = reader = salvaged
         self._reader, self._reader_pid = reader, os.getpid()
         if getattr(self, "_conn_topics", None):
             self._conns = self._connection_table(reader)
@@ -173,7 +196,7 @@ class BagDataset(Dataset):
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
         state["_reader"], state["_reader_pid"], state["_conns"] = None, -1, []
-        return state
+        return state  # a salvaged reader travels with its index and without its open files
 
     def _connection_table(self, reader) -> list:
         topics = reader.topics

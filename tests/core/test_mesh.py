@@ -1,10 +1,11 @@
-"""Mesh extraction on maps whose SDF is known in closed form (a plane), to check seams and culling."""
+"""Mesh extraction on maps whose SDF is known in closed form (a plane), to check seams, culling and the
+extraction block by block."""
 
 import numpy as np
 import torch
 
 from neb_slam_core.config import BlockConfig, HashGridConfig, MeshConfig
-from neb_slam_core.mesh import extract_mesh
+from neb_slam_core.mesh import affected_blocks, extract_block_meshes, extract_mesh, split_by_block
 from neb_slam_core.scene.block_map import BlockMap, MapSample
 
 PLANE_Z = 0.311
@@ -80,3 +81,41 @@ def test_vertex_colours_come_from_the_colour_decoder():
     mesh = extract_mesh(m, MeshConfig(voxel_size_m=0.1), observed_rectangle(0.0, 0.9, -0.5, 0.5))
     expected = np.round(np.clip(mesh.vertices[:, 0], 0, 1) * 255)
     assert np.abs(mesh.visual.vertex_colors[:, 0].astype(float) - expected).max() <= 1
+
+
+def _rows(verts, faces, colours) -> np.ndarray:
+    """Triangles as rows of corners and corner colours, in a canonical order (rounded to sort: vertices
+    on a seam are computed by two blocks)."""
+    r = np.concatenate([verts[faces].reshape(len(faces), -1), colours[faces][..., :3].reshape(len(faces), -1)], axis=1)
+    return r[np.lexsort(np.round(r, 6).T[::-1])]
+
+
+def test_the_blocks_parts_are_the_mesh_split_by_owner():
+    cfg = MeshConfig(voxel_size_m=0.05, cull_distance_m=0.1)
+    m = plane_map([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [5.0, 0.0, 0.0]])  # 0 and 1 overlap; 2 on its own
+    obs = observed_rectangle(-0.8, 5.9, -0.5, 0.5)
+    mesh = extract_mesh(m, cfg, obs)
+    parts = extract_block_meshes(m, cfg, obs, [2, 0, 1])
+    assert sorted(parts) == [0, 1, 2] and all(len(p[1]) > 0 for p in parts.values())
+    colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    whole = _rows(np.asarray(mesh.vertices), np.asarray(mesh.faces), colours)
+    together = np.concatenate([_rows(*p) for p in parts.values()])
+    together = together[np.lexsort(np.round(together, 6).T[::-1])]
+    assert whole.shape == together.shape
+    np.testing.assert_allclose(together, whole, rtol=0, atol=1e-9)
+    split = split_by_block(mesh, m)
+    for b, part in parts.items():
+        np.testing.assert_allclose(_rows(*split[b]), _rows(*part), rtol=0, atol=1e-9)
+    # a block the observations do not reach has no triangles
+    empty = extract_block_meshes(m, cfg, observed_rectangle(-0.8, 0.0, -0.5, 0.5), [2])[2]
+    assert empty[0].shape == (0, 3) and empty[1].shape == (0, 3)
+
+
+def test_a_changed_block_affects_the_blocks_within_its_reach():
+    cfg = MeshConfig(voxel_size_m=0.05)
+    m = plane_map([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [3.6, 0.0, 0.0], [6.0, 0.0, 0.0]])
+    # edge 2 m: 1 overlaps 0, 2 is 0.1 m (two voxels) past 1's face, 3 is 0.4 m past 2's
+    assert affected_blocks(m, cfg, [0]) == {0, 1}
+    assert affected_blocks(m, cfg, [1]) == {0, 1, 2}
+    assert affected_blocks(m, cfg, {3}) == {3}
+    assert affected_blocks(m, cfg, []) == set()

@@ -179,8 +179,12 @@ def test_a_loop_correction_keeps_the_loop_start_and_moves_the_rest_without_new_b
     start = len(kfs) // 2
     moved = before.copy()
     moved[start + 1 :, :3, 3] += [0.06, 0.0, -0.03]  # what propagate_correction would hand over
+    revisions = dict(slam.backend.mapper.revisions)
     step = slam.backend.correct_loop(moved, start)
     after = kfs.poses()
+    # the mapper counted a revision of exactly the blocks the two stages changed
+    bumped = {b for b, n in slam.backend.mapper.revisions.items() if n > revisions.get(b, 0)}
+    assert bumped == step.changed_block_ids
     np.testing.assert_array_equal(after[: start + 1], before[: start + 1])  # held through both stages
     # the joint stage refines the moved poses, it does not undo the correction (6.7 cm)
     assert np.abs(after[start + 1 :, :3, 3] - moved[start + 1 :, :3, 3]).max() < 0.02

@@ -6,6 +6,9 @@ blocks overlap). A cell produces the same triangles whichever block computes it,
 block only the triangles whose centroid it *owns* (the containing block with the nearest centre)
 gives seams with neither cracks nor doubled walls. Only lattice points within ``cull_distance_m`` of an
 observed point are evaluated, which both saves the work and culls surfaces far from any observation.
+
+:func:`extract_block_meshes` gives the blocks' parts one by one, for a caller that re-extracts only the
+blocks whose surface may have changed (:func:`affected_blocks`) and keeps the others' parts.
 """
 
 from __future__ import annotations
@@ -35,25 +38,98 @@ def extract_mesh(
             depth). Surfaces farther than ``cfg.cull_distance_m`` from all of them are not extracted.
             None evaluates every block completely (slow for large blocks; no culling).
     """
-    v = cfg.voxel_size_m
-    centres = block_map.centres().cpu().double().numpy()
-    half = 0.5 * block_map.block_cfg.edge_m
-    observed_keys = None
-    if observed_points is not None and len(observed_points):
-        observed_keys = np.unique(np.floor(np.asarray(observed_points) / v).astype(np.int64), axis=0)
-    parts: list[trimesh.Trimesh] = []
+    lattice = _Lattice(block_map, cfg, observed_points)
     blocks = range(len(block_map))
     if progress:
         from tqdm import tqdm
 
         blocks = tqdm(blocks, desc="mesh", unit="block")
-    for b in blocks:
-        lo = np.floor((centres[b] - half) / v).astype(np.int64)
-        hi = np.ceil((centres[b] + half) / v).astype(np.int64)
-        shape = tuple(int(x) for x in hi - lo + 1)
-        evaluate = _near_observations(observed_keys, lo, shape, math.ceil(cfg.cull_distance_m / v))
-        if not evaluate.any():
+    parts = [trimesh.Trimesh(*tri, process=False) for b in blocks if (tri := lattice.owned_triangles(b)) is not None]
+    if not parts:
+        return trimesh.Trimesh()
+    mesh = trimesh.util.concatenate(parts)
+    mesh.merge_vertices(digits_vertex=6)
+    mesh.remove_unreferenced_vertices()
+    mesh.visual.vertex_colors = _query_colours(block_map, mesh.vertices, cfg.batch_points)
+    return mesh
+
+
+@torch.no_grad()
+def extract_block_meshes(
+    block_map: BlockMap, cfg: MeshConfig, observed_points: np.ndarray | None, block_ids
+) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The parts of :func:`extract_mesh` that blocks ``block_ids`` own, each extracted on its own: block id
+    -> (vertices ``(V, 3)`` float64 m, faces ``(F, 3)``, vertex colours ``(V, 3)`` uint8); a block without
+    a triangle maps to empty arrays. Together over every block they are the triangles of
+    :func:`extract_mesh`, which also merges vertices that coincide to 1e-6 m (the blocks' seams), so a
+    caller that keeps the parts can re-extract only the blocks whose surface changed."""
+    lattice = _Lattice(block_map, cfg, observed_points)
+    out = {}
+    for b in sorted(int(i) for i in block_ids):
+        tri = lattice.owned_triangles(b)
+        if tri is None:
+            out[b] = (np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3), dtype=np.uint8))
             continue
+        verts, faces = tri
+        used, faces = np.unique(faces, return_inverse=True)  # only the vertices its triangles use
+        verts = verts[used]
+        out[b] = (verts, faces.reshape(-1, 3), _query_colours(block_map, verts, cfg.batch_points)[:, :3])
+    return out
+
+
+def split_by_block(mesh: trimesh.Trimesh, block_map: BlockMap) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The triangles of ``mesh`` (of :func:`extract_mesh`) grouped by the block that owns their centroid,
+    the rule the extraction keeps them by: block id -> (vertices, faces, vertex colours ``(V, 3)`` uint8),
+    the vertex arrays shared by all parts. Each part is what :func:`extract_block_meshes` gives that block,
+    up to the vertices merged on the seams."""
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if len(faces) == 0:
+        return {}
+    colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    centres = block_map.centres().cpu().double().numpy()
+    owner = _owner(verts[faces].mean(axis=1), centres, 0.5 * block_map.block_cfg.edge_m)
+    return {int(b): (verts, faces[owner == b], colours) for b in np.unique(owner) if b >= 0}
+
+
+def affected_blocks(block_map: BlockMap, cfg: MeshConfig, changed_ids) -> set[int]:
+    """The blocks whose part (:func:`extract_block_meshes`) may differ after the tables of blocks
+    ``changed_ids`` changed: those blocks and every block within reach of one of them. The SDF where blocks
+    overlap blends their features, and a block's lattice reaches a voxel beyond its faces, so a neighbour
+    that overlaps, touches or lies within two voxels has triangles that move too. The decoders, which
+    every block shares, are not counted."""
+    changed = sorted(int(b) for b in changed_ids)
+    if not changed:
+        return set()
+    centres = block_map.centres().cpu().double().numpy()
+    gap = np.abs(centres[:, None, :] - centres[None, changed, :]).max(axis=-1)
+    near = (gap <= block_map.block_cfg.edge_m + 2 * cfg.voxel_size_m).any(axis=1)
+    return {int(b) for b in np.flatnonzero(near)} | set(changed)
+
+
+class _Lattice:
+    """The world lattice of ``cfg.voxel_size_m`` over ``block_map`` and the observed voxels that limit where
+    it is evaluated: what every block's marching cubes share."""
+
+    def __init__(self, block_map: BlockMap, cfg: MeshConfig, observed_points: np.ndarray | None):
+        self.block_map = block_map
+        self.cfg = cfg
+        self.centres = block_map.centres().cpu().double().numpy()
+        self.half = 0.5 * block_map.block_cfg.edge_m
+        self.observed_keys = None
+        if observed_points is not None and len(observed_points):
+            v = cfg.voxel_size_m
+            self.observed_keys = np.unique(np.floor(np.asarray(observed_points) / v).astype(np.int64), axis=0)
+
+    def owned_triangles(self, b: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Marching cubes over block ``b``'s part of the lattice: the vertices (world, metres) and the faces
+        of the triangles whose centroid block ``b`` owns (:func:`_owner`), or None when it owns none."""
+        block_map, cfg, v = self.block_map, self.cfg, self.cfg.voxel_size_m
+        lo = np.floor((self.centres[b] - self.half) / v).astype(np.int64)
+        hi = np.ceil((self.centres[b] + self.half) / v).astype(np.int64)
+        shape = tuple(int(x) for x in hi - lo + 1)
+        evaluate = _near_observations(self.observed_keys, lo, shape, math.ceil(cfg.cull_distance_m / v))
+        if not evaluate.any():
+            return None
         idx = np.argwhere(evaluate)
         pts = (idx + lo) * v
         sdf = np.full(shape, np.nan, dtype=np.float32)
@@ -66,33 +142,26 @@ def extract_mesh(
         c &= known[1:, 1:, :-1] & known[1:, :-1, 1:] & known[:-1, 1:, 1:] & known[1:, 1:, 1:]
         cell_ok[:-1, :-1, :-1] = c
         if not cell_ok.any():
-            continue
+            return None
         vol = np.where(known, sdf, 1.0).astype(np.float32)
         if vol[cell_ok].min() > 0 or vol[cell_ok].max() < 0:
-            continue
+            return None
         try:
             verts, faces, _, _ = marching_cubes(
                 vol, level=0.0, spacing=(v, v, v), gradient_direction="ascent", allow_degenerate=False
             )
         except (ValueError, RuntimeError):  # no crossing at all
-            continue
+            return None
         # keep triangles of cells whose 8 corners all carry a value (a triangle lies inside its cell)
         centroid_idx = verts[faces].mean(axis=1) / v
         cell = np.clip(np.floor(centroid_idx).astype(np.int64), 0, np.array(shape) - 1)
         keep = cell_ok[tuple(cell.T)]
         verts = verts + lo * v
         centroid = verts[faces].mean(axis=1)
-        keep &= _owner(centroid, centres, half) == b
+        keep &= _owner(centroid, self.centres, self.half) == b
         if not keep.any():
-            continue
-        parts.append(trimesh.Trimesh(verts, faces[keep], process=False))
-    if not parts:
-        return trimesh.Trimesh()
-    mesh = trimesh.util.concatenate(parts)
-    mesh.merge_vertices(digits_vertex=6)
-    mesh.remove_unreferenced_vertices()
-    mesh.visual.vertex_colors = _query_colours(block_map, mesh.vertices, cfg.batch_points)
-    return mesh
+            return None
+        return verts, faces[keep]
 
 
 def _near_observations(

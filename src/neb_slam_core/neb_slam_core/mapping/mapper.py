@@ -33,6 +33,10 @@ class Mapper:
     The map optimiser lives as long as the mapper, so Adam's state carries over between calls and
     survives block allocation; keyframe poses get a fresh optimiser per call (the set of keyframes
     changes between calls), and the first keyframe is held fixed to anchor the world frame.
+
+    :attr:`revisions` counts, per block id, the calls that changed the block's table (a block never
+    changed is absent): a reader that keeps the counts it last saw knows which blocks changed since,
+    whichever thread or caller ran the steps (the ROS ``mesh`` topic re-extracts only those).
     """
 
     def __init__(
@@ -44,6 +48,7 @@ class Mapper:
         self.render_cfg = render_cfg
         self.map_opt = MapOptimizer(block_map, cfg.grid_lr, cfg.decoder_lr)
         self.generator = torch.Generator().manual_seed(seed)
+        self.revisions: dict[int, int] = {}
 
     def optimise_on_rays(self, rays: RayBatch, iterations: int) -> MappingResult:
         """Map-only optimisation on a fixed pool of world rays (the first frame's initialisation)."""
@@ -57,10 +62,15 @@ class Mapper:
             changed |= self._blocks_with_gradient()
             self.map_opt.step()
             loss_value = float(loss.total.detach())
+        self._count_revisions(changed)
         return MappingResult(iterations, loss_value, changed)
 
     def _blocks_with_gradient(self) -> set[int]:
         return {b.block_id for b in self.block_map.blocks if b.grid.table.grad is not None}
+
+    def _count_revisions(self, changed: set[int]) -> None:
+        for b in changed:
+            self.revisions[b] = self.revisions.get(b, 0) + 1
 
     def optimise(
         self, iterations: int | None = None, optimise_poses: bool | None = None, fixed_until: int = 0
@@ -102,4 +112,5 @@ class Mapper:
             loss_value = float(loss.total.detach())
         if pose_opt is not None:
             kfs.set_poses(poses.numpy())
+        self._count_revisions(changed)
         return MappingResult(iterations, loss_value, changed)

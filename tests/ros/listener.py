@@ -1,5 +1,6 @@
 """An independent subscriber process (what another robot's stack would be): it records what the suite
-publishes on pose, path, blocks and mesh, and on SIGINT writes a JSON summary to the path given as argv[1]."""
+publishes on pose, path, blocks and mesh (the markers it holds, each message updating the blocks it names),
+and on SIGINT writes a JSON summary to the path given as argv[1]."""
 
 import json
 import sys
@@ -41,9 +42,16 @@ def main() -> None:
     def on_blocks(m):
         seen["block_ids"] = sorted(k.id for k in m.markers)
 
+    mesh: dict[int, int] = {}  # block id -> points of its marker, kept by id as RViz keeps them
+
     def on_mesh(m):
-        seen["mesh_markers"] = len(m.markers)
-        seen["mesh_points"] = sum(len(k.points) for k in m.markers)
+        for k in m.markers:
+            if k.action == k.DELETE:
+                mesh.pop(k.id, None)
+            else:
+                mesh[k.id] = len(k.points)
+        seen["mesh_markers"] = len(mesh)
+        seen["mesh_points"] = sum(mesh.values())
 
     node.create_subscription(MarkerArray, "blocks", on_blocks, state)
     node.create_subscription(MarkerArray, "mesh", on_mesh, state)

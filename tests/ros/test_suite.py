@@ -124,7 +124,7 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
 
     mesh = trimesh.load(run.run_dir / "mesh.ply")
     assert len(mesh.faces) > 100
-    # the last mesh on the topic is the final one, mesh.ply's (its triangles whose centroid lies in a block)
+    # the mesh the listener holds at the end is the final one, mesh.ply's (its triangles whose centroid lies in a block)
     assert 0.99 * 3 * len(mesh.faces) <= seen["mesh_points"] <= 3 * len(mesh.faces), (
         seen["mesh_points"],
         len(mesh.faces),

@@ -225,22 +225,39 @@ def block_markers(centres: np.ndarray, edge_m: float, ns: int, frame_id: str) ->
     return out
 
 
-def mesh_markers(parts: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]], ns: int, frame_id: str) -> MarkerArray:
-    """One TRIANGLE_LIST marker per block (ns ``neb_blocks``, id = block id) with vertex colours.
+def triangle_list(verts: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A TRIANGLE_LIST's ``points`` ``(3F, 3)`` float64 and ``colors`` ``(3F, 4)`` float32 (RGBA in 0..1,
+    alpha 1) from a mesh part: vertices ``(V, 3)`` m, faces ``(F, 3)``, vertex colours ``(V, 3+)`` uint8.
+    Both hold what ``Point(x, y, z)`` and ``ColorRGBA(r=c / 255.0, ...)`` hold, corner by corner."""
+    corners = np.asarray(faces, dtype=np.int64).reshape(-1)
+    points = np.asarray(verts, dtype=np.float64).reshape(-1, 3)[corners]
+    colors = np.ones((len(corners), 4), dtype=np.float32)
+    colors[:, :3] = np.asarray(colours)[corners, :3].astype(np.float64) / 255.0
+    return points, colors
 
-    ``parts``: block id -> (vertices (V, 3) m, faces (F, 3), vertex colours (V, 3) uint8).
+
+def mesh_marker_msgs(parts, ns: int, frame_id: str) -> MarkerArray:
+    """The MarkerArray of :func:`neb_slam_ros.cdr.mesh_marker_array` as message objects, one Point and one
+    ColorRGBA per corner (for a middleware that does not read the serialized form; slow on large meshes).
+
+    ``parts``: block id -> ``(points, colors)`` of :func:`triangle_list`, or None for a DELETE marker.
     """
     out = MarkerArray()
-    for block_id, (verts, faces, colours) in sorted(parts.items()):
+    for block_id in sorted(parts):
+        tri = parts[block_id]
         m = Marker(
-            header=header(ns, frame_id), ns="neb_blocks", id=int(block_id), type=Marker.TRIANGLE_LIST, action=Marker.ADD
+            header=header(ns, frame_id),
+            ns="neb_blocks",
+            id=int(block_id),
+            type=Marker.TRIANGLE_LIST,
+            action=Marker.ADD if tri is not None else Marker.DELETE,
         )
         m.pose.orientation.w = 1.0
         m.scale = Vector3(x=1.0, y=1.0, z=1.0)
         m.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
-        tri = np.asarray(verts, dtype=np.float64)[np.asarray(faces).reshape(-1)]
-        rgb = np.asarray(colours, dtype=np.float64)[np.asarray(faces).reshape(-1), :3] / 255.0
-        m.points = [Point(x=x, y=y, z=z) for x, y, z in tri.tolist()]
-        m.colors = [ColorRGBA(r=r, g=g, b=b, a=1.0) for r, g, b in rgb.tolist()]
+        if tri is not None:
+            points, colors = tri
+            m.points = [Point(x=x, y=y, z=z) for x, y, z in np.asarray(points, dtype=np.float64).tolist()]
+            m.colors = [ColorRGBA(r=r, g=g, b=b, a=a) for r, g, b, a in np.asarray(colors, dtype=np.float64).tolist()]
         out.markers.append(m)
     return out

@@ -106,6 +106,7 @@ class MapperNode(NebNode):
             block_map=lambda: self.block_map if len(self.backend.keyframes) else None,
             observed_points=lambda: self.backend.observed_points(self._rng),
             write_map=self._write_map,
+            block_revisions=lambda: self.backend.mapper.revisions,
         )
         self._n_update_subscribers = 0
         if self.opt.map_file:

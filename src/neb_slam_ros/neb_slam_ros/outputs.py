@@ -1,9 +1,13 @@
 """What the nodes publish for other stacks, defined once for every node that publishes it.
 
-- :class:`PoseOutputs`: ``pose``, ``odometry``, ``path`` and ``blocks`` of the tracking side (the
-  ``tracker`` and the one-process ``slam``).
+- :class:`PoseOutputs`: ``pose``, ``odometry``, ``path`` (:class:`PathOutput`) and ``blocks`` of the tracking
+  side (the ``tracker`` and the one-process ``slam``).
 - :class:`MapOutputs`: ``mesh`` and the ``save_mesh`` / ``save_map`` services of the mapping side (the
   ``mapper`` and ``slam``), run in the node's worker thread (the map's owner).
+
+``path`` and ``mesh`` grow with the run (every frame, every surface), so neither is rebuilt per frame:
+the path goes out at most every ``path_period_s``, the mesh only to subscribers and only for the blocks
+that changed, and both are serialized straight from numpy arrays (:mod:`neb_slam_ros.cdr`).
 """
 
 from __future__ import annotations
@@ -13,40 +17,143 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import torch
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
+from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
+from rclpy.event_handler import PublisherEventCallbacks
 from visualization_msgs.msg import MarkerArray
 
 from neb_slam_core.io.run_dir import RunDirectory
 from neb_slam_core.io.trajectory import Trajectory
 from neb_slam_core.types import StepResult
-from neb_slam_ros import conversions, qos
+from neb_slam_ros import cdr, conversions, qos
 
-#: at shutdown, how long a published mesh may wait for every subscriber's acknowledgement (the process
-#: ends right after; a reliable message not yet received would be lost with it)
+#: at shutdown, how long a published mesh or path may wait for every subscriber's acknowledgement (the
+#: process ends right after; a reliable message not yet received would be lost with it)
 FINAL_MESH_ACK_S = 5.0
 
 #: the camera frame named in odometry's child_frame_id
 CAMERA_FRAME = "camera"
 
+#: with ``path_period_s`` 0 (a path after every frame), how often a change held back while nobody
+#: subscribed is looked at again
+IDLE_PATH_CHECK_S = 1.0
+
+
+class PathOutput:
+    """``path`` (transient local): the whole trajectory with every correction applied, at bounded cost.
+
+    nav_msgs/Path has no incremental form, so each publication carries every pose; what is bounded is how
+    often one is built. A new frame or a correction only marks the path as changed (:meth:`changed`). It
+    goes out when ``period_s`` (steady clock) has passed since the last publication, at once after a loop
+    correction, and otherwise from a timer that looks every half period, so the last frames of a run wait
+    at most one and a half periods; ``period_s`` 0 publishes after every change. While nobody subscribes
+    nothing is built (the timer publishes the change once someone does). A publication reads the
+    trajectory once (``trajectory()``: every frame's current pose, one vectorised pass) and serializes it
+    in one piece.
+
+    Args:
+        node: the :class:`~neb_slam_ros.node.NebNode` (its worker thread calls every method).
+        publisher: the ``path`` publisher.
+        frame_id: frame of the path and its poses.
+        period_s: shortest time between two publications (0: after every change).
+        trajectory: the current trajectory.
+        clock: seconds of a steady clock (a simulated one in benchmarks).
+    """
+
+    def __init__(
+        self,
+        node,
+        publisher,
+        frame_id: str,
+        period_s: float,
+        trajectory: Callable[[], Trajectory],
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.pub = publisher
+        self.frame_id = frame_id
+        self.period_s = period_s
+        self._trajectory = trajectory
+        self._clock = clock
+        self.pending = False
+        self.n_published = 0
+        self._last = -float("inf")
+        steady = Clock(clock_type=ClockType.STEADY_TIME)  # a paused or fast replay does not change the rate
+        self.timer = node.create_timer(
+            period_s / 2 if period_s > 0 else IDLE_PATH_CHECK_S,
+            lambda: node.submit(self._on_timer, "publish_path", coalesce=True),
+            clock=steady,
+        )
+
+    def changed(self, now: bool = False) -> None:
+        """The trajectory gained a frame or corrected poses moved: publish when the period since the last
+        publication has passed, or with ``now`` (a loop correction) at once; else the timer will."""
+        self.pending = True
+        if now or self._clock() - self._last >= self.period_s:
+            self.publish_pending()
+
+    def _on_timer(self) -> str:
+        if self._clock() - self._last < self.period_s:
+            return "within the period"
+        return self.publish_pending()
+
+    def publish_pending(self) -> str:
+        """Publish the trajectory if it changed since the last publication and someone subscribes."""
+        if not self.pending:
+            return "no change"
+        if self.pub.get_subscription_count() == 0:
+            return "no subscriber"
+        return self.publish()
+
+    def publish(self, ack_timeout_s: float = 0.0) -> str:
+        """Publish the current trajectory; with ``ack_timeout_s``, then wait up to that long for every
+        subscriber's acknowledgement."""
+        tr = self._trajectory()
+        stamp = int(tr.stamps_ns[-1]) if len(tr.stamps_ns) else 0
+        if cdr.supported():
+            msg = cdr.path(tr.stamps_ns, cdr.pose_rows(tr.poses), self.frame_id, stamp)
+        else:
+            msg = conversions.path_msg(tr.stamps_ns, tr.poses, self.frame_id, stamp)
+        self.pub.publish(msg)
+        self.pending = False
+        self.n_published += 1
+        self._last = self._clock()
+        if ack_timeout_s > 0:
+            self.pub.wait_for_all_acked(Duration(seconds=ack_timeout_s))
+        return f"{len(tr.stamps_ns)} poses"
+
+    def flush(self, ack_timeout_s: float = FINAL_MESH_ACK_S) -> None:
+        """At shutdown: publish a change not published yet (to whoever subscribes) and wait for it."""
+        self.timer.cancel()
+        if self.pending and self.pub.get_subscription_count() > 0:
+            self.publish(ack_timeout_s)
+
 
 class PoseOutputs:
-    """``pose`` and ``odometry`` per frame, ``path`` and ``blocks`` (transient local) of ``node``."""
+    """``pose`` and ``odometry`` per frame, ``path`` and ``blocks`` (transient local) of ``node``.
 
-    def __init__(self, node, frame_id: str, block_edge_m: float):
+    ``trajectory``: every processed frame's current pose (read when ``path`` is published);
+    ``path_period_s``: see :class:`PathOutput`.
+    """
+
+    def __init__(
+        self,
+        node,
+        frame_id: str,
+        block_edge_m: float,
+        trajectory: Callable[[], Trajectory],
+        path_period_s: float,
+    ):
         self.frame_id = frame_id
         self.block_edge_m = block_edge_m
         self.pub_pose = node.create_publisher(PoseStamped, "pose", qos.stream())
         self.pub_odom = node.create_publisher(Odometry, "odometry", qos.stream())
         self.pub_path = node.create_publisher(PathMsg, "path", qos.state())
         self.pub_blocks = node.create_publisher(MarkerArray, "blocks", qos.state())
+        self.path = PathOutput(node, self.pub_path, frame_id, path_period_s, trajectory)
         self._prev: tuple[np.ndarray, int] | None = None
-
-    def publish_path(self, trajectory: Trajectory) -> None:
-        self.pub_path.publish(conversions.path_msg(trajectory.stamps_ns, trajectory.poses, self.frame_id))
 
     def publish_blocks(self, centres: np.ndarray, stamp_ns: int) -> None:
         self.pub_blocks.publish(conversions.block_markers(centres, self.block_edge_m, stamp_ns, self.frame_id))
@@ -67,21 +174,21 @@ def block_centres(block_map) -> np.ndarray:
     return block_map.centres().detach().cpu().double().numpy().reshape(-1, 3)
 
 
-def split_by_block(mesh, block_map) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """A mesh's triangles grouped by the block that holds their centroid (the lowest id where blocks
-    overlap): block id -> (vertices, faces, vertex colours), the vertex arrays shared."""
-    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    if len(faces) == 0:
-        return {}
-    colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
-    centroids = torch.as_tensor(verts[faces].mean(axis=1), dtype=torch.float32, device=block_map.device)
-    inside = block_map.contains(centroids).cpu()
-    owner = torch.where(inside.any(dim=1), inside.float().argmax(dim=1), -1).numpy()
-    return {int(b): (verts, faces[owner == b], colours) for b in np.unique(owner) if b >= 0}
-
-
 class MapOutputs:
     """The mesh topic and the map's services of ``node`` (a :class:`~neb_slam_ros.node.NebNode`).
+
+    ``mesh`` (transient local) is one TRIANGLE_LIST marker per block; a message carries only the blocks
+    whose part changed since the last one (RViz's MarkerArray display, like any subscriber that keeps
+    markers by namespace and id, updates just those), with a DELETE marker for a block that lost its
+    triangles. The periodic publication (:meth:`publish_current_mesh`) builds nothing while nobody
+    subscribes; otherwise it re-extracts only the blocks whose table changed since they were last
+    extracted, and the blocks within their reach (:func:`~neb_slam_core.mesh.affected_blocks`), and keeps
+    every block's marker. A subscriber that arrives later receives the latest message at once (transient
+    local), then every kept marker in one message as soon as the publisher matches it, and the next
+    periodic message is again complete when the subscriber count rose in between. ``save_mesh`` and the
+    final mesh extract every block and publish every marker. Stamps come from the node's clock (sim time
+    under ``use_sim_time``). The decoders, which every mapping step refines, are shared by all blocks: a
+    block that no step changes keeps the surface of its last extraction until then.
 
     Args:
         frame_id: frame of the mesh.
@@ -91,6 +198,8 @@ class MapOutputs:
         block_map: the map to mesh, or None while there is nothing to mesh.
         observed_points: the world points that cull the mesh (the keyframes' observed points).
         write_map: writes the map checkpoint into a run directory; returns its path.
+        block_revisions: per block id, how many optimisation calls changed its table
+            (:attr:`neb_slam_core.mapping.mapper.Mapper.revisions`).
     """
 
     def __init__(
@@ -103,14 +212,25 @@ class MapOutputs:
         block_map: Callable[[], object | None],
         observed_points: Callable[[], np.ndarray],
         write_map: Callable[[RunDirectory], Path],
+        block_revisions: Callable[[], dict[int, int]],
     ):
         self.frame_id = frame_id
         self.mesh_cfg = mesh_cfg
         self.out_dir = out_dir
+        self._node = node
         self._block_map = block_map
         self._observed_points = observed_points
         self._write_map = write_map
-        self.pub_mesh = node.create_publisher(MarkerArray, "mesh", qos.state())
+        self._block_revisions = block_revisions
+        self._markers: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # block id -> (points, colors) published
+        self._extracted: dict[int, int] = {}  # block id -> its revision when last extracted
+        self._subscribers = 0  # subscription count at the last publication
+        self.pub_mesh = node.create_publisher(
+            MarkerArray,
+            "mesh",
+            qos.state(),
+            event_callbacks=PublisherEventCallbacks(matched=self._on_matched),
+        )
         node.worker_service("save_mesh", self.save_mesh)
         node.worker_service("save_map", self.save_map)
         if mesh_period_s > 0:
@@ -120,30 +240,101 @@ class MapOutputs:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         return RunDirectory(self.out_dir)
 
-    def mesh(self):
-        """The current mesh (marching cubes over every block, culled to what the keyframes observed)."""
-        from neb_slam_core.mesh import extract_mesh
-
+    def _map(self):
         block_map = self._block_map()
         if block_map is None:
             raise RuntimeError("nothing mapped yet")
         if len(block_map) == 0:
             raise RuntimeError("the map has no blocks yet")
-        return extract_mesh(block_map, self.mesh_cfg, self._observed_points())
+        return block_map
 
-    def publish(self, mesh, ack_timeout_s: float = 0.0) -> str:
-        """Publish ``mesh`` as one marker per block; with ``ack_timeout_s``, then wait up to that long until
-        every matched subscriber has acknowledged it. Returns what was published, for the log."""
-        block_map = self._block_map()
-        self.pub_mesh.publish(conversions.mesh_markers(split_by_block(mesh, block_map), time.time_ns(), self.frame_id))
+    def mesh(self):
+        """The current mesh (marching cubes over every block, culled to what the keyframes observed)."""
+        from neb_slam_core.mesh import extract_mesh
+
+        return extract_mesh(self._map(), self.mesh_cfg, self._observed_points())
+
+    # ------------------------------------------------------------------ publication (worker thread)
+
+    def _send(self, parts: dict[int, tuple[np.ndarray, np.ndarray] | None], ack_timeout_s: float = 0.0) -> None:
+        """Publish the markers ``parts`` (None: DELETE) stamped with the node's clock."""
+        ns = self._node.get_clock().now().nanoseconds
+        if cdr.supported():
+            msg = cdr.mesh_marker_array(parts, ns, self.frame_id)
+        else:
+            msg = conversions.mesh_marker_msgs(parts, ns, self.frame_id)
+        self.pub_mesh.publish(msg)
         if ack_timeout_s > 0:
             self.pub_mesh.wait_for_all_acked(Duration(seconds=ack_timeout_s))
-        return f"{len(mesh.faces)} faces"
+
+    def _keep(self, parts: dict[int, tuple]) -> dict[int, tuple[np.ndarray, np.ndarray] | None]:
+        """Take mesh ``parts`` (block id -> vertices, faces, colours; empty for a block without triangles) as
+        the blocks' markers; returns the markers to send for them (None: DELETE a marker sent before)."""
+        out: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
+        for b, (verts, faces, colours) in parts.items():
+            if len(faces):
+                out[b] = self._markers[b] = conversions.triangle_list(verts, faces, colours)
+            elif self._markers.pop(b, None) is not None:
+                out[b] = None
+        return out
 
     def publish_current_mesh(self) -> str:
-        if self._block_map() is None:
+        """The periodic publication: the blocks whose part changed since the last one (every kept marker
+        when the subscriber count rose since); nothing is extracted while nobody subscribes."""
+        from neb_slam_core.mesh import affected_blocks, extract_block_meshes
+
+        n = self.pub_mesh.get_subscription_count()
+        if n == 0:
+            self._subscribers = 0
+            return "no subscriber: nothing extracted"
+        block_map = self._block_map()
+        if block_map is None or len(block_map) == 0:
             return "nothing mapped yet"
-        return self.publish(self.mesh())
+        revisions = dict(self._block_revisions())
+        now = {b: revisions.get(b, 0) for b in range(len(block_map))}
+        changed = [b for b, r in now.items() if self._extracted.get(b) != r]
+        redo = affected_blocks(block_map, self.mesh_cfg, changed)
+        parts = extract_block_meshes(block_map, self.mesh_cfg, self._observed_points(), redo) if redo else {}
+        self._extracted.update({b: now[b] for b in redo})
+        send = self._keep(parts)
+        if n > self._subscribers:  # someone new: everything, not just what changed
+            send = {**self._markers, **send}
+        self._subscribers = n
+        if not send:
+            return f"{len(redo)} blocks re-extracted, nothing changed"
+        self._send(send)
+        return f"{len(redo)} blocks re-extracted, {len(send)} markers published"
+
+    def publish(self, mesh, ack_timeout_s: float = 0.0) -> str:
+        """Publish the whole mesh ``mesh`` (of every block: ``save_mesh``, the final one), every block's
+        marker, with a DELETE for a block that no longer has triangles; with ``ack_timeout_s``, then wait up
+        to that long until every matched subscriber has acknowledged it. Returns what was published, for
+        the log."""
+        from neb_slam_core.mesh import split_by_block
+
+        block_map = self._map()
+        parts = split_by_block(mesh, block_map)
+        empty = (np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3), dtype=np.uint8))
+        send = self._keep({b: parts.get(b, empty) for b in range(len(block_map))})  # every block
+        revisions = dict(self._block_revisions())
+        self._extracted = {b: revisions.get(b, 0) for b in range(len(block_map))}
+        self._subscribers = self.pub_mesh.get_subscription_count()
+        self._send(send, ack_timeout_s)
+        return f"{len(mesh.faces)} faces"
+
+    def _on_matched(self, info) -> None:
+        """A subscriber matched (executor thread): hand it every kept marker at once, from the worker."""
+        if info.current_count_change > 0:
+            self._node.submit(self._republish, "republish_mesh", coalesce=True)
+
+    def _republish(self) -> str:
+        if not self._markers:
+            return "no mesh published yet"
+        self._send(dict(self._markers))
+        self._subscribers = max(self._subscribers, self.pub_mesh.get_subscription_count())
+        return f"{len(self._markers)} markers republished"
+
+    # ------------------------------------------------------------------ services (worker thread)
 
     def save_mesh(self, ack_timeout_s: float = 0.0) -> str:
         """Write ``mesh.ply`` and publish the same mesh; returns the file's path."""

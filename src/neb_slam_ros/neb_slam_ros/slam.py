@@ -48,6 +48,7 @@ class SlamOptions:
 
     output_dir: str = ""
     mesh_period_s: float = 30.0
+    path_period_s: float = 1.0
     frame_id: str = "map"
     initial_pose_timeout_s: float = 10.0
     bag: str = ""
@@ -64,6 +65,8 @@ class SlamOptions:
         "map_file": "a map checkpoint (map.pt) to continue; empty: start from an empty map",
         "output_dir": "run directory written at shutdown (and by save_mesh / save_map); empty: runs/slam-<date>-<time>",
         "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
+        "path_period_s": "publish the path at most this often, and at once after a loop correction (0: after "
+        "every frame)",
         "frame_id": "frame of the published poses and mesh",
         "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
         "bag": "also replay this bag in the process (bag_replay's parameters apply); the process ends with it",
@@ -71,6 +74,7 @@ class SlamOptions:
 
     def check(self) -> None:
         require(self.mesh_period_s >= 0, "mesh_period_s", ">= 0", self.mesh_period_s)
+        require(self.path_period_s >= 0, "path_period_s", ">= 0", self.path_period_s)
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
         require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
 
@@ -89,7 +93,10 @@ class SlamNode(NebNode):
         self.run_log = RunLog()
         self._t_first: float | None = None
         self.input = CameraInput(self, self.input_opt, self.cond)
-        self.poses = PoseOutputs(self, self.opt.frame_id, self.cfg.block.edge_m)
+        self._loops_applied = 0
+        self.poses = PoseOutputs(
+            self, self.opt.frame_id, self.cfg.block.edge_m, lambda: self.slam.trajectory(), self.opt.path_period_s
+        )
         self.map_outputs = MapOutputs(
             self,
             self.opt.frame_id,
@@ -99,6 +106,7 @@ class SlamNode(NebNode):
             block_map=lambda: None if self.slam is None else self.slam.block_map,
             observed_points=lambda: self.slam.observed_points(),
             write_map=lambda run_dir: run_dir.write_map(self.slam, self.run_log.frames),
+            block_revisions=lambda: self.slam.backend.mapper.revisions,
         )
         self.start_worker()
         start = f", continuing {self.opt.map_file} ({len(self._map)} blocks)" if self._map is not None else ""
@@ -154,7 +162,11 @@ class SlamNode(NebNode):
         r = self.slam.process(frame)
         self.run_log.end(r)
         self._t_last = time.perf_counter()
-        self.poses.publish_path(self.slam.trajectory())
+        # a loop correction applied in this step goes out at once (the live engine's reach the tracking
+        # thread with a later map update, and the path within a period)
+        applied = sum(1 for e in self.slam.loops if e.applied)
+        self.poses.path.changed(now=applied > self._loops_applied)
+        self._loops_applied = applied
         if r.new_block_id is not None:
             self.poses.publish_blocks(block_centres(self.slam.block_map), r.stamp_ns)
         self.poses.publish_frame(r)
@@ -195,6 +207,7 @@ class SlamNode(NebNode):
         if self.live:
             summary.metrics.update(self.slam.live_metrics(frames_in, self._t_last - self._t_first))
         run_dir.write_metrics(summary.metrics)
+        self.poses.path.flush()
         if summary.mesh is not None:  # the final mesh, also to the topic's subscribers
             self.map_outputs.publish(summary.mesh, FINAL_MESH_ACK_S)
         m = summary.metrics

@@ -106,10 +106,12 @@ def launch(
         }
     else:
         sync = {"map_sync": not live, "loop_sync": not live}
+        # the mapper writes trajectory.txt from the tracker's latest path and stops first: the tracker
+        # publishes its path after every frame, so that the latest one holds the last frame
         plan = {
             "mapper": {**engine, **resume, "output_dir": str(out), "mesh_period_s": mesh_period_s},
             "loop_closer": engine,
-            "tracker": {**engine, **camera, **sync, "wait_for_map": map_file is not None},
+            "tracker": {**engine, **camera, **sync, "wait_for_map": map_file is not None, "path_period_s": 0.0},
             "bag_replay": replay,
         }
     procs: dict[str, subprocess.Popen] = {}

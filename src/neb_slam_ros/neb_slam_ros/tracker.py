@@ -56,6 +56,7 @@ class TrackerOptions:
     map_timeout_s: float = 600.0
     initial_pose_timeout_s: float = 10.0
     frame_id: str = "map"
+    path_period_s: float = 1.0
 
     PARAMETER_DOCS = {
         "map_sync": "after a keyframe that triggers mapping, wait for its map update before the next frame",
@@ -64,12 +65,15 @@ class TrackerOptions:
         "map_timeout_s": "warn when an awaited map update or loop verdict takes longer than this",
         "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
         "frame_id": "frame of the published poses",
+        "path_period_s": "publish the path at most this often, and at once after a loop correction (0: after "
+        "every frame)",
     }
 
     def check(self) -> None:
         require(self.map_timeout_s > 0, "map_timeout_s", "> 0", self.map_timeout_s)
         require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
+        require(self.path_period_s >= 0, "path_period_s", ">= 0", self.path_period_s)
 
 
 class TrackerNode(NebNode):
@@ -87,6 +91,7 @@ class TrackerNode(NebNode):
         self._awaited_loop: int | None = None  # stamp of the keyframe whose loop verdict we wait for
         self._loop_checked = -1
         self._map_version = 0
+        self._loop_stamp = -1  # the newest loop correction the map updates have carried
         self._waited_since: float | None = None
         self._keyframe_stamps: list[int] = []
         self._lag_max = 0
@@ -95,7 +100,9 @@ class TrackerNode(NebNode):
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
         if self.opt.loop_sync:
             self.create_subscription(Path, "loop_closure", self._on_loop_verdict, qos.events(10))
-        self.poses = PoseOutputs(self, self.opt.frame_id, self.cfg.block.edge_m)
+        self.poses = PoseOutputs(
+            self, self.opt.frame_id, self.cfg.block.edge_m, lambda: self.frontend.trajectory(), self.opt.path_period_s
+        )
         self.pub_kf = {
             "rgb": self.create_publisher(Image, "keyframe/rgb", qos.keyframes()),
             "depth": self.create_publisher(Image, "keyframe/depth", qos.keyframes()),
@@ -202,16 +209,18 @@ class TrackerNode(NebNode):
             return
         self._map_version = update.version
         self._acked = max(self._acked, update.ack_stamp_ns)
+        loop = update.loop_stamp_ns > self._loop_stamp  # a loop correction: the path goes out at once
+        self._loop_stamp = max(self._loop_stamp, update.loop_stamp_ns)
         if self.frontend is not None and len(update.keyframe_poses):
             self.frontend.set_keyframe_poses(update.keyframe_poses)
-            self.poses.publish_path(self.frontend.trajectory())
+            self.poses.path.changed(now=loop)
 
     def _track(self, frame: RgbdFrame) -> None:
         if self.frontend is None:
             self.frontend = Frontend(self.cfg, self.block_map, self._first_pose(frame.stamp_ns))
         step = self.frontend.step(frame)
         r = step.result
-        self.poses.publish_path(self.frontend.trajectory())
+        self.poses.path.changed()
         if r.new_block_id is not None:
             self.poses.publish_blocks(block_centres(self.block_map), r.stamp_ns)
         if step.keyframe_id is not None:
@@ -249,6 +258,8 @@ class TrackerNode(NebNode):
         return sum(1 for s in self._keyframe_stamps if s > self._acked)
 
     def finish(self) -> None:
+        if self.frontend is not None:
+            self.poses.path.flush()  # the frames of the last period
         n = 0 if self.frontend is None else self.frontend.n_frames
         self.final_log(
             f"neb_slam tracker stopped: {n} frames tracked, {len(self.block_map)} blocks, "

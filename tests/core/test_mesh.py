@@ -119,3 +119,13 @@ def test_a_changed_block_affects_the_blocks_within_its_reach():
     assert affected_blocks(m, cfg, [1]) == {0, 1, 2}
     assert affected_blocks(m, cfg, {3}) == {3}
     assert affected_blocks(m, cfg, []) == set()
+
+
+def test_observed_voxels_are_the_distinct_voxels_of_the_points():
+    from neb_slam_core.mesh import _voxels
+
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.uniform(-30, 30, size=(5000, 3)), rng.uniform(-0.1, 0.1, size=(5000, 3))])
+    expected = np.unique(np.floor(points / 0.02).astype(np.int64), axis=0)
+    np.testing.assert_array_equal(_voxels(points, 0.02), expected)
+    assert _voxels(np.zeros((0, 3)), 0.02).shape == (0, 3)

@@ -117,8 +117,7 @@ class _Lattice:
         self.half = 0.5 * block_map.block_cfg.edge_m
         self.observed_keys = None
         if observed_points is not None and len(observed_points):
-            v = cfg.voxel_size_m
-            self.observed_keys = np.unique(np.floor(np.asarray(observed_points) / v).astype(np.int64), axis=0)
+            self.observed_keys = _voxels(np.asarray(observed_points), cfg.voxel_size_m)
 
     def owned_triangles(self, b: int) -> tuple[np.ndarray, np.ndarray] | None:
         """Marching cubes over block ``b``'s part of the lattice: the vertices (world, metres) and the faces
@@ -162,6 +161,21 @@ class _Lattice:
         if not keep.any():
             return None
         return verts, faces[keep]
+
+
+def _voxels(points: np.ndarray, v: float) -> np.ndarray:
+    """``(K, 3)`` int64: the distinct lattice voxels (``floor(p / v)``) that ``points`` fall in, found as
+    one packed integer per voxel (far faster than unique rows)."""
+    keys = np.floor(points / v).astype(np.int64)
+    if len(keys) == 0:
+        return keys.reshape(0, 3)
+    lo = keys.min(axis=0)
+    rel = keys - lo
+    if rel.max() >= 1 << 21:  # a span of more than 2^21 voxels per axis does not pack into 63 bits
+        return np.unique(keys, axis=0)
+    packed = np.unique((rel[:, 0] << 42) | (rel[:, 1] << 21) | rel[:, 2])
+    mask = (1 << 21) - 1
+    return np.stack([packed >> 42, (packed >> 21) & mask, packed & mask], axis=1) + lo
 
 
 def _near_observations(

@@ -97,7 +97,7 @@ def test_a_frame_without_depth_is_a_tracking_failure_that_keeps_the_prediction(s
     assert not r.tracking_ok and "rays" in r.failure_reason
     assert not r.is_keyframe and r.new_block_id is None and not r.mapped
     np.testing.assert_allclose(r.T_world_cam, T2 @ invert(T1) @ T2, atol=1e-9)  # constant velocity
-    # after a failure the next frame starts from the last pose (the velocity is unknown) and recovers
+    # after a failure the next frame starts from the last tracked pose (the velocity is unknown) and recovers
     r = slam.process(frames[4])
     assert r.tracking_ok
     assert np.linalg.norm(r.T_world_cam[:3, 3] - frames[4].T_world_cam[:3, 3]) < 0.01

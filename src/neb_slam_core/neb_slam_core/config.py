@@ -259,6 +259,12 @@ class TrackingConfig:
     of the ``n_rays`` pixels, until a step moves less than ``coarse_stop_step_m``, then the stage on all
     of them from its pose. Each stage takes at most ``iterations`` steps. A prediction far from the
     minimum (frames dropped, fast motion) then costs cheap steps instead of full ones.
+
+    ``relocalise``: after a tracking failure the frontend is lost (it allocates nothing, makes no
+    keyframe, predicts the last tracked pose) until a frame passes the failure test again. Each lost
+    frame is re-tracked from the last tracked pose and, where the engine has a keyframe database (the
+    loop closer's, ``loop.enabled``), from the poses of the keyframes it is verified against; the start
+    whose tracked pose has the lowest depth residual is judged. False: only the prediction is tracked.
     """
 
     n_rays: int = 1024
@@ -275,6 +281,7 @@ class TrackingConfig:
     max_extrapolation: float = 4.0
     coarse_rays: int = 0
     coarse_stop_step_m: float = 2e-3
+    relocalise: bool = True
 
 
 @dataclass(frozen=True)

@@ -427,6 +427,7 @@ RULES: dict[str, Any] = {
     "tracking.max_extrapolation": _NON_NEGATIVE,
     "tracking.coarse_rays": _COUNT,
     "tracking.coarse_stop_step_m": _NON_NEGATIVE,
+    "tracking.relocalise": _Bool(),
     "keyframes.every": _POSITIVE_INT,
     "keyframes.every_s": _NON_NEGATIVE,
     "keyframes.pixel_fraction": _Num(0.0, 1.0, lo_open=True, hi_open=False),

@@ -27,6 +27,7 @@ frames tracked in between are moved along instead of keeping the drift.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,7 +43,7 @@ from .mapping.keyframes import Keyframe, KeyframeStore
 from .mapping.mapper import Mapper
 from .render.rays import all_pixels
 from .scene.block_map import BlockMap
-from .tracking.tracker import Tracker
+from .tracking.tracker import Tracker, TrackingResult
 from .types import LoopEvent, RgbdFrame, StepResult, StepTimings
 
 
@@ -224,9 +225,20 @@ class Frontend:
 
     Keyframe poses live here as a list indexed by keyframe id; the backend's corrections come back
     through :meth:`set_keyframe_poses`.
+
+    After a tracking failure the frontend is :attr:`lost` until a frame passes the failure test again.
+    ``relocaliser``, when given, maps a lost (rectified) frame to candidate world poses from a place
+    recognition outside the frontend (in :class:`Slam`: the loop closer's keyframe database); the
+    frontend only tracks from them, so it needs nothing of ``loop/``.
     """
 
-    def __init__(self, cfg: SlamConfig, block_map: BlockMap, T_world_first: np.ndarray | None = None):
+    def __init__(
+        self,
+        cfg: SlamConfig,
+        block_map: BlockMap,
+        T_world_first: np.ndarray | None = None,
+        relocaliser: Callable[[RgbdFrame], list[np.ndarray]] | None = None,
+    ):
         self.cfg = cfg
         self.block_map = block_map
         self.rng = np.random.default_rng(cfg.seed)
@@ -241,6 +253,9 @@ class Frontend:
         self._ok_streak = 0  # consecutive frames tracked (the first frame counts)
         self._tracked: list[int] = []  # the last two frames that were tracked (not failed), oldest first
         self._rectify = Rectifier()
+        self.relocaliser = relocaliser
+        #: the last frame failed tracking and none has passed since
+        self.lost = False
 
     # ------------------------------------------------------------------ poses
 
@@ -316,11 +331,19 @@ class Frontend:
         T_pred = self.predict(frame.stamp_ns)
         t0 = time.perf_counter()
         tracked = self.tracker.track(self.block_map, frame, T_pred)
+        if self.cfg.tracking.relocalise and (self.lost or not self._passes(tracked)):
+            tracked = self._relocalise(frame, T_pred, tracked)
         timings.track_ms = 1e3 * (time.perf_counter() - t0)
         ok, reason = self._tracking_ok(tracked)
+        recovered = ok and self.lost
+        self.lost = not ok
         self._ok_streak = self._ok_streak + 1 if ok else 0
-        if ok:
+        if recovered:
+            self._tracked, self._ok_streak = [index], 1  # no velocity across the gap
+        elif ok:
             self._tracked = (self._tracked + [index])[-2:]
+        else:
+            self._tracked = self._tracked[-1:]  # the motion before the loss is stale
         T = tracked.T_world_cam if ok else T_pred
 
         # allocate (only from a trusted pose: a wrong one would put a block in the wrong place)
@@ -338,7 +361,7 @@ class Frontend:
         map_now = (ok or index == 0) and (
             index % c.mapping.every == 0 or new_block is not None or self._keyframe_due(frame.stamp_ns)
         )
-        is_keyframe = (ok or index == 0) and (index % c.keyframes.every == 0 or map_now)
+        is_keyframe = (ok or index == 0) and (index % c.keyframes.every == 0 or map_now or recovered)
         keyframe_id = self._add_keyframe(T) if is_keyframe else None
         self._record(frame.stamp_ns, T)
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
@@ -379,12 +402,16 @@ class Frontend:
         ``tracking.motion_model``: ``frames`` (the paper's): ``T_{t-1} T_{t-2}^-1 T_{t-1}``, only when both
         previous frames were tracked (after a failure the velocity is unknown, and extrapolating an
         extrapolation runs away), else the previous pose. ``stamps``: the motion between the last two
-        tracked frames, scaled to the time since the last one by their stamps (frames dropped or failed
-        in between do not matter), at most ``tracking.max_extrapolation`` times that motion.
+        tracked frames, scaled to the time since the last one by their stamps (frames dropped in between
+        do not matter), at most ``tracking.max_extrapolation`` times that motion. While :attr:`lost`, both
+        predict the last tracked pose: the motion before a loss says nothing about where the camera went,
+        and after a recovery the velocity starts anew from the recovered frame.
         """
         index = self.n_frames
         if index == 0:
             return self.T_world_first
+        if self.lost and self._tracked:
+            return self.pose_of(self._tracked[-1])
         c = self.cfg.tracking
         if c.motion_model == "frames":
             if index >= 2 and self._ok_streak >= 2:
@@ -427,7 +454,36 @@ class Frontend:
         )
         return FrontendStep(result, frame, keyframe_id, True, True)
 
-    def _tracking_ok(self, tracked) -> tuple[bool, str]:
+    def _relocalise(self, frame: RgbdFrame, T_pred: np.ndarray, tracked: TrackingResult) -> TrackingResult:
+        """``tracked`` (from ``T_pred``) or the frame tracked from another start, whichever has the lowest
+        depth residual with enough rays inside blocks: the starts are the last tracked pose and the
+        ``relocaliser``'s poses. Tracking from a far-off start converges to a wrong pose or leaves the
+        map, which the depth residual shows; it is the quantity the failure test judges."""
+        starts = [] if self.relocaliser is None else list(self.relocaliser(frame))
+        if self._tracked:
+            starts.insert(0, self.pose_of(self._tracked[-1]))
+        best = tracked
+        for T in starts:
+            if np.allclose(T, T_pred, atol=1e-9):
+                continue
+            other = self.tracker.track(self.block_map, frame, T)
+            if self._better(other, best):
+                best = other
+        return best
+
+    def _better(self, a: TrackingResult, b: TrackingResult) -> bool:
+        """``a`` has enough rays inside blocks and a lower depth residual than ``b`` (or ``b`` has too few)."""
+        enough = self.cfg.tracking.min_valid_rays
+        if a.n_valid_rays < enough or not np.isfinite(a.depth_residual_m):
+            return False
+        return b.n_valid_rays < enough or not a.depth_residual_m >= b.depth_residual_m
+
+    def _passes(self, tracked: TrackingResult) -> bool:
+        """The failure test of :meth:`_tracking_ok`, without recording the residual."""
+        ok, _ = self._tracking_ok(tracked, record=False)
+        return ok
+
+    def _tracking_ok(self, tracked: TrackingResult, record: bool = True) -> tuple[bool, str]:
         c = self.cfg.tracking
         if tracked.n_valid_rays < c.min_valid_rays:
             return False, f"only {tracked.n_valid_rays} rays inside mapped blocks (< {c.min_valid_rays})"
@@ -442,7 +498,8 @@ class Frontend:
                     f"({c.failure_ratio:g} x its running level {100 * level:.2f} cm, at least "
                     f"{100 * c.failure_min_residual_m:.1f} cm)"
                 )
-        self._residuals.append(tracked.depth_residual_m)
+        if record:
+            self._residuals.append(tracked.depth_residual_m)
         return True, ""
 
     def _keyframe_due(self, stamp_ns: int) -> bool:
@@ -637,6 +694,8 @@ class Slam:
         self.frontend = Frontend(cfg, self.block_map, T_world_first)
         self.backend = Backend(cfg, self.block_map)
         self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled else None
+        if self.loop_closer is not None:
+            self.frontend.relocaliser = self._relocalisation_poses
         self.loops: list[LoopEvent] = []
 
     # ------------------------------------------------------------------ state
@@ -691,6 +750,12 @@ class Slam:
             result.T_world_cam = self.pose_of(result.frame_index)
         result.timings.total_ms = 1e3 * (time.perf_counter() - t_start)
         return result
+
+    def _relocalisation_poses(self, frame: RgbdFrame) -> list[np.ndarray]:
+        """Candidate poses of a lost frame: the loop closer's keyframes verified against it (bag of words,
+        then the loop detector's geometric check), each keyframe's current pose times the verified
+        relative pose."""
+        return self.loop_closer.relocalise(frame, self.keyframes.poses())
 
     def _close_loop(self, step: FrontendStep) -> LoopEvent | None:
         """Loop check of a new keyframe (the paper's last step of the loop); on an applied loop, correct

@@ -91,6 +91,13 @@ class LoopCloser:
         corrected = propagate_correction(poses, min(ids), keyframe_id, fit.T_world_cam, self.registrations)
         return event(True), corrected
 
+    def relocalise(self, frame: RgbdFrame, poses: np.ndarray, max_poses: int = 2) -> list[np.ndarray]:
+        """World poses ``(4, 4)`` of ``frame`` (rectified, not a keyframe) from the keyframes it was
+        verified against (:meth:`LoopDetector.place`), best match first, at most ``max_poses``; ``poses``
+        are the current keyframe poses ``(K, 4, 4)``. Empty when no keyframe passes the geometric check."""
+        found = self.detector.place(frame.stamp_ns, frame.rgb, frame.depth_m, frame.intrinsics, max_poses)
+        return [np.asarray(poses[c.keyframe_id], dtype=np.float64) @ c.T_cand_query for c in found]
+
     def register(self, keyframe_id: int, poses: np.ndarray, frame: RgbdFrame) -> None:
         """Registration edges into :attr:`registrations` from the ``register_neighbours`` keyframes added
         before ``keyframe_id`` (added; ``frame`` is it), starting from the relative poses in ``poses``

@@ -356,6 +356,27 @@ class LoopDetector:
             detection = LoopDetection(q.keyframe_id, tuple(chosen), threshold)
         return LoopQuery(q.keyframe_id, threshold, result.keyframe_ids, result.scores, tuple(checks), detection)
 
+    def place(
+        self, stamp_ns: int, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, max_results: int
+    ) -> list[LoopCandidate]:
+        """Relocalisation query of a frame that is not a keyframe (nothing is stored): the database's
+        ``top_k`` best keyframes, each checked by :meth:`verify`, best score first; at most
+        ``max_results`` verified candidates. Unlike :meth:`query` there is no threshold and no temporal
+        window: a lost camera may be anywhere, including where the last keyframes were."""
+        q = self.describe(-1, stamp_ns, rgb, depth_m, intrinsics)
+        result = self.database.query(q.bow, max_results=self.cfg.top_k)
+        verified: list[LoopCandidate] = []
+        for cand_id, score in zip(result.keyframe_ids.tolist(), result.scores.tolist()):
+            cand = self.keyframe(cand_id)
+            check = self.verify(q, cand)
+            if check.accepted:
+                verified.append(
+                    LoopCandidate(cand_id, cand.stamp_ns, score, check.T_cand_query, check.n_matches, check.n_inliers)
+                )
+                if len(verified) >= max_results:
+                    break
+        return verified
+
     def verify(self, query: KeyframeFeatures, cand: KeyframeFeatures) -> GeometricCheck:
         """Geometric check of ``cand`` for ``query``: matches, depth back-projection, PnP RANSAC."""
         cfg = self.cfg

@@ -118,6 +118,10 @@ class LiveSlam:
         self.frontend = Frontend(cfg, self._track_map, T_world_first)
         self.backend = Backend(cfg, mapper_map)
         self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled else None
+        # the loop thread adds keyframes to the closer's database while a lost tracker queries it
+        self._database_lock = threading.Lock()
+        if self.loop_closer is not None:
+            self.frontend.relocaliser = self._relocalisation_poses
         self.loops: list[LoopEvent] = []
         self.stats = LiveStats()
         self.errors: list[str] = []
@@ -195,6 +199,13 @@ class LiveSlam:
         result = step.result
         result.timings.total_ms = 1e3 * (time.perf_counter() - t_start)
         return result
+
+    def _relocalisation_poses(self, frame: RgbdFrame) -> list[np.ndarray]:
+        """Candidate poses of a lost frame from the keyframes the loop thread has added so far (the
+        tracker's keyframe poses: it has every keyframe, the loop thread may lag)."""
+        poses = np.stack(self.frontend.keyframe_poses)
+        with self._database_lock:
+            return self.loop_closer.relocalise(frame, poses)
 
     def wait_for_map(self) -> None:
         """After the first frame of a run from an empty map: wait until the mapper has fitted the first map
@@ -349,7 +360,8 @@ class LiveSlam:
             poses = h.keyframe_poses.copy()
             if refined is not None:  # the mapper's poses where it has them, the tracker's after
                 poses[: min(len(refined), len(poses))] = refined[: len(poses)]
-            self.loop_closer.add_keyframe(kid, h.step.frame)
+            with self._database_lock:
+                self.loop_closer.add_keyframe(kid, h.step.frame)
             event, corrected = self.loop_closer.close(kid, poses, h.step.frame)
             if event is None:
                 continue

@@ -51,7 +51,7 @@ def kidnapped(small_scene):
     ds = open_dataset(small_scene)
     frames = [ds[i] for i in range(len(ds))]
     period = frames[1].stamp_ns - frames[0].stamp_ns
-    slam = Slam(load_config("ci"), frames[0].T_world_cam)
+    slam = Slam(load_config("ci", ["tracking.relocalise=true"]), frames[0].T_world_cam)
     results = [slam.process(f) for f in frames[:N_BEFORE]]
     n_blocks = len(slam.block_map)
     stamp = frames[N_BEFORE - 1].stamp_ns

@@ -264,7 +264,9 @@ class TrackingConfig:
     keyframe, predicts the last tracked pose) until a frame passes the failure test again. Each lost
     frame is re-tracked from the last tracked pose and, where the engine has a keyframe database (the
     loop closer's, ``loop.enabled``), from the poses of the keyframes it is verified against; the start
-    whose tracked pose has the lowest depth residual is judged. False: only the prediction is tracked.
+    whose tracked pose has the lowest depth residual is judged. False (the default, as the paper): only
+    the prediction is tracked. In the live engine each extra attempt delays the next frame, and a pose
+    that passes the failure test can still be a wrong one, so it is off in every preset.
     """
 
     n_rays: int = 1024
@@ -281,7 +283,7 @@ class TrackingConfig:
     max_extrapolation: float = 4.0
     coarse_rays: int = 0
     coarse_stop_step_m: float = 2e-3
-    relocalise: bool = True
+    relocalise: bool = False
 
 
 @dataclass(frozen=True)

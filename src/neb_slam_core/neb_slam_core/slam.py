@@ -403,15 +403,15 @@ class Frontend:
         previous frames were tracked (after a failure the velocity is unknown, and extrapolating an
         extrapolation runs away), else the previous pose. ``stamps``: the motion between the last two
         tracked frames, scaled to the time since the last one by their stamps (frames dropped in between
-        do not matter), at most ``tracking.max_extrapolation`` times that motion. While :attr:`lost`, both
-        predict the last tracked pose: the motion before a loss says nothing about where the camera went,
-        and after a recovery the velocity starts anew from the recovered frame.
+        do not matter), at most ``tracking.max_extrapolation`` times that motion. While :attr:`lost`,
+        neither extrapolates further: ``frames`` keeps the previous frame's pose (the failed frames carry
+        the one prediction made before the loss, so a single dropped frame costs nothing), ``stamps``
+        the last tracked pose (its velocity is forgotten at a failure); after a recovery the velocity
+        starts anew from the recovered frame.
         """
         index = self.n_frames
         if index == 0:
             return self.T_world_first
-        if self.lost and self._tracked:
-            return self.pose_of(self._tracked[-1])
         c = self.cfg.tracking
         if c.motion_model == "frames":
             if index >= 2 and self._ok_streak >= 2:

@@ -25,10 +25,6 @@ pytestmark = [pytest.mark.ros, pytest.mark.filterwarnings("ignore::DeprecationWa
 REPO = Path(__file__).resolve().parents[2]
 N_FRAMES = 8  # frames 0-7: the first keyframe's initialisation, tracking against it, a mapping keyframe at 5
 CONFIG = "ci"
-# Lockstep with map_sync computes the one-process engine's trajectory. Not to the last bit: the C++ kernels'
-# spatial gradients (the tracking Jacobian) are not bit-reproducible across processes, and a different
-# Jacobian changes a Levenberg-Marquardt path by up to about 0.3 mm over these frames.
-SAME_RUN_ATOL = 1e-3
 
 
 @pytest.fixture(scope="module")
@@ -142,11 +138,12 @@ def test_separate_processes_replay_a_bag_like_the_offline_engine(small_bag, offl
     # meshes
     run, seen, logs = _run_suite(small_bag, tmp_path / "suite", ros_env, one_process=False, mesh_period_s=2.0)
     _check(run, seen, logs, offline, small_bag)
-    # lockstep with map_sync: the one-process computation (SAME_RUN_ATOL)
+    # lockstep with map_sync: exactly the one-process computation, to the last bit of the float64 poses
+    # (up to the quaternion of the path messages the mapper corrects with)
     from neb_slam_core.io.trajectory import read_tum_trajectory
 
     est = read_tum_trajectory(run.run_dir / "trajectory.txt")
-    np.testing.assert_allclose(est.poses, offline[0].poses, atol=SAME_RUN_ATOL)
+    np.testing.assert_allclose(est.poses, offline[0].poses, atol=1e-6)
 
 
 def test_one_process_slam_replays_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):
@@ -177,7 +174,7 @@ def test_the_suite_continues_a_saved_map(small_bag, offline, ros_env, tmp_path, 
     assert all(code == 0 for code in run.exit_codes.values()), (run.exit_codes, logs)
     assert seen["path_stamps_ns"] == [f.stamp_ns for f in frames[4:]]
     est = read_tum_trajectory(run.run_dir / "trajectory.txt")
-    np.testing.assert_allclose(est.poses, resumed.trajectory().poses, atol=SAME_RUN_ATOL)
+    np.testing.assert_allclose(est.poses, resumed.trajectory().poses, atol=1e-6)
     assert f"continuing {map_file}" in logs["slam" if one_process else "mapper"]
 
 

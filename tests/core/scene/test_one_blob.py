@@ -113,3 +113,20 @@ def test_codes_with_slopes_are_the_reference_and_its_derivative():
         torch.testing.assert_close(slopes[:, a], jac[a * k : (a + 1) * k, :, a].T, rtol=0, atol=1e-10)
         others = [b for b in range(3) if b != a]
         assert float(jac[a * k : (a + 1) * k][:, :, others].abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_with_slopes_gives_the_forward_codes_and_their_derivatives(dtype):
+    """On the fast path the codes are bit for bit those of forward (the C++ kernel), the slopes the
+    reference's derivative."""
+    from neb_slam_core.scene.one_blob import encode_with_slopes
+
+    blob = OneBlob(OneBlobConfig(), backend="fast")
+    x = ((torch.rand(700, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64) - 0.5) * 40.0).to(dtype)
+    code, slopes = blob.with_slopes(x)
+    assert torch.equal(code, blob(x))
+    ref_code, ref_slopes = encode_with_slopes(x.double(), blob.cfg.n_bins, blob.cfg.period_m)
+    tol = 1e-5 if dtype == torch.float32 else 1e-10
+    torch.testing.assert_close(code.double(), ref_code, rtol=0, atol=tol)
+    # slopes reach K^2 / period = 25.6 per metre: the same relative tolerance
+    torch.testing.assert_close(slopes.double(), ref_slopes, rtol=0, atol=tol * 30)

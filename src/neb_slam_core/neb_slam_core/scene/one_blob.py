@@ -16,7 +16,8 @@ Two interchangeable implementations, as for the hash grid (:mod:`.hash_grid`):
   feeds; the kernel needs two exponentials per axis and side instead of K (see its header).
 
 Tracking's closed-form spatial gradients also need the codes' derivatives themselves (not a gradient
-summed over them): :func:`encode_with_slopes`, in torch (three small element-wise ops beside the reference's).
+summed over them): :meth:`OneBlob.with_slopes`, the codes from the same path as :meth:`OneBlob.forward`
+and the slopes from them and the phase offsets (:func:`encode_with_slopes` is its plain torch form).
 
 :class:`OneBlob` picks between them like :class:`~.hash_grid.HashGrid` (``backend="auto"``: the fast path
 for CPU float32/float64 points when the C++ kernels load, the reference otherwise).
@@ -33,14 +34,24 @@ from . import _ext
 from .hash_grid import BACKENDS, FAST_DTYPES
 
 
-def _offsets_and_codes(points_world: Tensor, n_bins: int, period_m: float) -> tuple[Tensor, Tensor]:
+def _phase_offsets(points_world: Tensor, n_bins: int, period_m: float) -> Tensor:
     """``(N, 3, K)`` signed offsets of each axis' phase from the bin centres on the unit circle (in
-    [-1/2, 1/2]) and the codes they give."""
+    [-1/2, 1/2])."""
     centres = (torch.arange(n_bins, dtype=points_world.dtype, device=points_world.device) + 0.5) / n_bins
     phase = torch.remainder(points_world / period_m, 1.0)  # (N, 3)
     s = phase[..., None] - centres  # (N, 3, K)
-    s = s - torch.round(s)  # the shorter way round the circle
+    return s - torch.round(s)  # the shorter way round the circle
+
+
+def _offsets_and_codes(points_world: Tensor, n_bins: int, period_m: float) -> tuple[Tensor, Tensor]:
+    """The phase offsets (:func:`_phase_offsets`) and the codes they give, ``(N, 3, K)`` each."""
+    s = _phase_offsets(points_world, n_bins, period_m)
     return s, torch.exp(-0.5 * (s * n_bins) ** 2)  # sigma = 1 / K
+
+
+def _slopes(s: Tensor, code: Tensor, n_bins: int, period_m: float) -> Tensor:
+    """``d code / d x`` of the codes ``(N, 3, K)`` at phase offsets ``s``: ``-K^2 s code / period``."""
+    return (-(n_bins * n_bins) / period_m) * s * code
 
 
 def encode_reference(points_world: Tensor, n_bins: int, period_m: float) -> Tensor:
@@ -53,7 +64,7 @@ def encode_with_slopes(points_world: Tensor, n_bins: int, period_m: float) -> tu
     ``[n, a, j]`` is ``d code[n, a * n_bins + j] / d x[n, a]`` (a code depends on its own axis only), in plain
     torch: ``-K^2 s code / period`` with ``s`` the signed phase offset from the bin centre."""
     s, code = _offsets_and_codes(points_world, n_bins, period_m)
-    return code.flatten(-2), (-(n_bins * n_bins) / period_m) * s * code
+    return code.flatten(-2), _slopes(s, code, n_bins, period_m)
 
 
 class _FastOneBlob(torch.autograd.Function):
@@ -103,8 +114,18 @@ class OneBlob(torch.nn.Module):
         )
 
     def with_slopes(self, points_world: Tensor) -> tuple[Tensor, Tensor]:
-        """``(N, 3)`` points -> codes ``(N, 3K)`` and slopes ``(N, 3, K)`` (:func:`encode_with_slopes`)."""
-        return encode_with_slopes(points_world, self.cfg.n_bins, float(self.cfg.period_m))
+        """``(N, 3)`` points -> codes ``(N, 3K)`` and slopes ``(N, 3, K)`` (:func:`encode_with_slopes`), without
+        autograd. On the fast path the codes are the C++ kernel's, those of :meth:`forward`: one pass, and
+        reproducible (torch's vectorised ``exp`` on the CPU has returned values 1e-4 off on one thread's
+        share of a call, in some processes and not others)."""
+        n_bins, period = self.cfg.n_bins, float(self.cfg.period_m)
+        x = points_world.reshape(-1, 3)
+        if not self.uses_fast_path(x):
+            return encode_with_slopes(x, n_bins, period)
+        with torch.no_grad():
+            x = x.detach().contiguous()
+            code = _ext.load_map_kernels().one_blob_forward(x, n_bins, period)
+            return code, _slopes(_phase_offsets(x, n_bins, period), code.view(-1, 3, n_bins), n_bins, period)
 
     def forward(self, points_world: Tensor) -> Tensor:
         lead = points_world.shape[:-1]

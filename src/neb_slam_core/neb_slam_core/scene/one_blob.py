@@ -116,8 +116,8 @@ class OneBlob(torch.nn.Module):
     def with_slopes(self, points_world: Tensor) -> tuple[Tensor, Tensor]:
         """``(N, 3)`` points -> codes ``(N, 3K)`` and slopes ``(N, 3, K)`` (:func:`encode_with_slopes`), without
         autograd. On the fast path the codes are the C++ kernel's, those of :meth:`forward`: one pass, and
-        reproducible (torch's vectorised ``exp`` on the CPU has returned values 1e-4 off on one thread's
-        share of a call, in some processes and not others)."""
+        the same bits in every process, which torch's vectorised ``exp`` on the CPU does not guarantee (it
+        can differ on one thread's share of a call), so a lockstep replay computes the offline run."""
         n_bins, period = self.cfg.n_bins, float(self.cfg.period_m)
         x = points_world.reshape(-1, 3)
         if not self.uses_fast_path(x):

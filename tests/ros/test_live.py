@@ -52,6 +52,7 @@ def test_live_slam_drops_frames_and_tracks_the_rest(live_bag, ros_env, tmp_path)
         "live.max_gap_s": 0.3,
         "tracking.motion_model": "stamps",
         "tracking.max_extrapolation": 10.0,
+        "keyframes.every_s": 0.15,
         "frame_queue": N_FRAMES,
     }
     run = launch(bag, out, "ci", one_process=True, live=True, rate=1.0, env=ros_env, extra_params=live)

@@ -62,6 +62,10 @@ class BlockConfig:
     paper), weighted by a window that falls linearly to 0 over the last ``blend_m`` metres before each
     block's faces. Deep in an overlap this is the plain mean; at a face the leaving block's weight is 0,
     so features (and rendered depth) are continuous across seams. 0 gives the paper's plain mean.
+
+    ``observed_voxel_m`` (ours; 0: no record): each block records which of its voxels of this edge some
+    keyframe has seen (:meth:`~neb_slam_core.scene.block_map.BlockMap.mark_observed`), so that tracking
+    can leave out space the map has never been fitted to (``tracking.observed_only``).
     """
 
     edge_m: float = 5.0
@@ -69,6 +73,7 @@ class BlockConfig:
     alloc_threshold: float = 0.2
     alloc_n_points: int = 2000
     blend_m: float = 0.5
+    observed_voxel_m: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -267,6 +272,12 @@ class TrackingConfig:
     whose tracked pose has the lowest depth residual is judged. False (the default, as the paper): only
     the prediction is tracked. In the live engine each extra attempt delays the next frame, and a pose
     that passes the failure test can still be a wrong one, so it is off in every preset.
+
+    ``observed_only`` (ours; False: the paper): samples in space no keyframe has seen
+    (``block.observed_voxel_m``) count as outside every block, so a ray whose measured surface lies there
+    is left out. The map there is whatever its initialisation and its neighbours' fitting made of it:
+    its free space and surfaces are not the scene's, and they pull a camera that moved towards new
+    space back towards the space the map knows.
     """
 
     n_rays: int = 1024
@@ -284,6 +295,7 @@ class TrackingConfig:
     coarse_rays: int = 0
     coarse_stop_step_m: float = 2e-3
     relocalise: bool = False
+    observed_only: bool = True
 
 
 @dataclass(frozen=True)

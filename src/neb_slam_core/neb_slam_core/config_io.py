@@ -395,6 +395,7 @@ RULES: dict[str, Any] = {
     "block.alloc_threshold": _Num(0.0, 1.0, lo_open=True, hi_open=True),
     "block.alloc_n_points": _POSITIVE_INT,
     "block.blend_m": _NON_NEGATIVE,
+    "block.observed_voxel_m": _NON_NEGATIVE,
     "one_blob.n_bins": _Int(2),
     "one_blob.period_m": _POSITIVE,
     "decoder.hidden_dim": _POSITIVE_INT,
@@ -428,6 +429,7 @@ RULES: dict[str, Any] = {
     "tracking.coarse_rays": _COUNT,
     "tracking.coarse_stop_step_m": _NON_NEGATIVE,
     "tracking.relocalise": _Bool(),
+    "tracking.observed_only": _Bool(),
     "keyframes.every": _POSITIVE_INT,
     "keyframes.every_s": _NON_NEGATIVE,
     "keyframes.pixel_fraction": _Num(0.0, 1.0, lo_open=True, hi_open=False),
@@ -530,6 +532,12 @@ def config_problems(cfg: SlamConfig) -> list[ConfigProblem]:
         ("block.edge_m",),
         lambda: b.blend_m <= b.edge_m / 2,
         f"<= half of block.edge_m ({b.edge_m / 2:g})",
+    )
+    need(
+        "block.observed_voxel_m",
+        ("block.edge_m",),
+        lambda: b.observed_voxel_m == 0 or b.edge_m / 256 <= b.observed_voxel_m <= b.edge_m,
+        f"0 or between block.edge_m / 256 ({b.edge_m / 256:g}: at most 256^3 voxels a block) and block.edge_m",
     )
     need(
         "one_blob.period_m",

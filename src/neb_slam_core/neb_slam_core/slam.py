@@ -362,7 +362,7 @@ class Frontend:
             index % c.mapping.every == 0 or new_block is not None or self._keyframe_due(frame.stamp_ns)
         )
         is_keyframe = (ok or index == 0) and (index % c.keyframes.every == 0 or map_now or recovered)
-        keyframe_id = self._add_keyframe(T) if is_keyframe else None
+        keyframe_id = self._add_keyframe(frame, T) if is_keyframe else None
         self._record(frame.stamp_ns, T)
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
         result = StepResult(
@@ -434,7 +434,7 @@ class Frontend:
         t0 = time.perf_counter()
         new_block, tau = self._allocate(frame, T)
         timings = StepTimings(allocate_ms=1e3 * (time.perf_counter() - t0))
-        keyframe_id = self._add_keyframe(T)
+        keyframe_id = self._add_keyframe(frame, T)
         self._record(frame.stamp_ns, T)
         self._ok_streak = 1
         self._tracked = [0]
@@ -523,7 +523,13 @@ class Frontend:
         )
         return alloc.block, alloc.tau
 
-    def _add_keyframe(self, T: np.ndarray) -> int:
+    def observe(self, frame: RgbdFrame, T: np.ndarray) -> None:
+        """Record the space ``frame`` at ``T`` saw in the map's blocks (``tracking.observed_only``
+        tracks against that space alone)."""
+        self.block_map.mark_observed(frame.depth_m, frame.intrinsics, T, self.cfg.render.truncation_m)
+
+    def _add_keyframe(self, frame: RgbdFrame, T: np.ndarray) -> int:
+        self.observe(frame, T)
         link = invert(self.keyframe_poses[-1]) @ T if self.keyframe_poses else np.eye(4)
         self._keyframe_links.append(np.array(link, dtype=np.float64))
         self._keyframe_frames.append(self.n_frames)
@@ -659,6 +665,7 @@ class KnownPoseMapping:
         frame = self.frontend._rectify(frame)
         T = self._pose(frame, T_world_cam)
         self.frontend._allocate(frame, T)
+        self.frontend.observe(frame, T)
         return self.backend.add_keyframe(frame, T, len(self.keyframes), map_now=False).keyframe
 
     def optimise(self, iterations: int, progress: bool = False) -> list[float]:

@@ -308,3 +308,68 @@ def test_spatial_gradients_need_the_cpp_path():
     m.add_block([0.0, 0.0, 0.0])
     assert m.spatial_gradients(torch.zeros(4, 3), [0]) is None  # the caller differentiates otherwise
     assert _fast_map(0.5).spatial_gradients(torch.zeros(4, 3), []) is None
+
+
+# A block of edge 4 m at the origin with 1 m voxels (centres at +/-0.5 and +/-1.5 m), seen by a 4x4 camera
+# at the origin looking along +z: pixel u = round(2 x / z + 1.6), likewise v. In front of the camera the
+# voxel centres lie at z = 0.5 (only x = y = -0.5 lands in the image, on pixel 0) and at z = 1.5 (x and y
+# in {-1.5, -0.5, 0.5} land on pixels 0, 1, 2; 1.5 on pixel 4, outside).
+OBS_K = Intrinsics(2.0, 2.0, 1.6, 1.6, 4, 4)
+OBS_TR = 0.1
+
+
+def observed_map() -> BlockMap:
+    m = BlockMap(BlockConfig(edge_m=4.0, grid=SMALL_GRID, observed_voxel_m=1.0), grid_backend="reference", seed=3)
+    m.add_block([0.0, 0.0, 0.0])
+    return m
+
+
+def observed_centres(m: BlockMap) -> set[tuple[float, float, float]]:
+    idx = m.blocks[0].observed.nonzero()
+    return {tuple(float(v) for v in (-2.0 + (i + 0.5) * 1.0).tolist()) for i in idx}
+
+
+def test_a_keyframe_observes_the_voxels_in_its_view_up_to_its_surface():
+    m = observed_map()
+    assert m.blocks[0].observed.shape == (4, 4, 4) and not m.blocks[0].observed.any()
+    # surface 1.2 m away: a centre counts up to 1.2 + tr + half the voxel diagonal (0.87) = 2.17 m deep; a
+    # voxel's footprint there (2 px x 1 m / 1.2 m = 1.7 px) is under two pixels: each centre is compared
+    # with its own pixel's depth
+    assert m.mark_observed(np.full((4, 4), 1.2, np.float32), OBS_K, np.eye(4), OBS_TR) == 10
+    near = {(-0.5, -0.5, 0.5)}
+    far = {(x, y, 1.5) for x in (-1.5, -0.5, 0.5) for y in (-1.5, -0.5, 0.5)}
+    assert observed_centres(m) == near | far
+    assert m.mark_observed(np.full((4, 4), 1.2, np.float32), OBS_K, np.eye(4), OBS_TR) == 0  # already seen
+
+
+def test_space_behind_the_surface_and_pixels_without_depth_stay_unobserved():
+    m = observed_map()
+    depth = np.full((4, 4), 0.2, np.float32)  # the z = 1.5 centres lie behind 0.2 + 0.1 + 0.87
+    assert m.mark_observed(depth, OBS_K, np.eye(4), OBS_TR) == 1
+    assert observed_centres(m) == {(-0.5, -0.5, 0.5)}
+    m = observed_map()
+    depth = np.full((4, 4), 1.2, np.float32)
+    depth[2, 2] = 0.0  # the pixel of x = y = 0.5 at z = 1.5
+    assert m.mark_observed(depth, OBS_K, np.eye(4), OBS_TR) == 9
+    assert (0.5, 0.5, 1.5) not in observed_centres(m)
+
+
+def test_a_moved_camera_observes_the_moved_voxels():
+    m = observed_map()
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 0.0, 0.0]  # one voxel to the right: every observed centre moves by +1 m in x
+    m.mark_observed(np.full((4, 4), 1.2, np.float32), OBS_K, T, OBS_TR)
+    inside = {(x, y, 1.5) for x in (-0.5, 0.5, 1.5) for y in (-1.5, -0.5, 0.5)} | {(0.5, -0.5, 0.5)}
+    assert observed_centres(m) == inside
+
+
+def test_observed_answers_by_voxel_and_everything_counts_without_a_record():
+    m = observed_map()
+    m.mark_observed(np.full((4, 4), 1.2, np.float32), OBS_K, np.eye(4), OBS_TR)
+    pts = torch.tensor([[-0.9, -0.1, 0.2], [0.5, 0.5, 0.5], [0.2, 0.3, 1.9], [0.2, 0.3, 2.5], [1.2, 0.3, 1.5]])
+    # in the (-0.5, -0.5, 0.5) voxel; an unseen voxel; in (0.5, 0.5, 1.5); outside the block; (1.5, 0.5, 1.5)
+    assert m.observed(pts).tolist() == [True, False, True, False, False]
+    without = make_map(observed_voxel_m=0.0)
+    without.add_block([0.0, 0.0, 0.0])
+    assert without.blocks[0].voxel_m == 0.0
+    assert without.observed(pts).all()

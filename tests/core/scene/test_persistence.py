@@ -84,3 +84,20 @@ def test_load_rejects_other_files(tmp_path):
     torch.save(payload, p)
     with pytest.raises(DatasetError, match="version 99"):
         load_map(p)
+
+
+def test_the_observed_space_record_is_saved_and_a_map_without_it_counts_as_observed(tmp_path):
+    m = small_map()
+    k = Intrinsics(20.0, 20.0, 8.0, 6.0, 16, 12)
+    assert m.mark_observed(np.full((12, 16), 2.0, np.float32), k, np.eye(4), 0.1) > 0
+    seen = [b.observed.clone() for b in m.blocks]
+    assert 0 < int(seen[0].sum()) < seen[0].numel()
+    p = save_map(m, tmp_path / "map.pt")
+    m2, _ = load_map(p)
+    assert all(torch.equal(a, b.observed) for a, b in zip(seen, m2.blocks, strict=True))
+    payload = torch.load(p, weights_only=True)
+    for entry in payload["blocks"]:
+        del entry["observed"]
+    torch.save(payload, p)
+    m3, _ = load_map(p)
+    assert all(bool(b.observed.all()) for b in m3.blocks)

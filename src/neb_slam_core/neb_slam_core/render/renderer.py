@@ -20,13 +20,18 @@ def query_samples(
     sampling: SamplingConfig,
     block_ids: list[int] | None = None,
     with_colour: bool = True,
+    observed_only: bool = False,
 ) -> MapSample:
     """The map at the ``(R, S, 3)`` sample points of ``R`` rays (depths ``z`` (R, S), measured depth
     ``depth_m`` (R,)), flattened to ``R * S``. Samples too far behind the measured depth
     (:func:`~neb_slam_core.render.sampling.evaluated_samples`) are not evaluated and come back invalid,
-    as if outside every block; gradients reach the evaluated ones only."""
+    as if outside every block; gradients reach the evaluated ones only. With ``observed_only``, so do
+    samples in space no keyframe has seen (:meth:`~neb_slam_core.scene.block_map.BlockMap.observed`)."""
     flat = points.reshape(-1, 3)
     keep = evaluated_samples(z, depth_m, sampling.skip_behind_m)
+    if observed_only:
+        seen = block_map.observed(flat, block_ids).reshape(z.shape)
+        keep = seen if keep is None else keep & seen
     if keep is None or bool(keep.all()):
         return block_map.query(flat, block_ids, with_colour=with_colour)
     idx = keep.reshape(-1).nonzero(as_tuple=True)[0]
@@ -48,18 +53,19 @@ def render_rays(
     generator: torch.Generator | None = None,
     with_colour: bool = True,
     z: torch.Tensor | None = None,
+    observed_only: bool = False,
 ) -> RenderOutput:
     """Sample, query the blocks ``block_ids`` (all when None) and composite ``R`` rays.
 
     Samples outside every consulted block are discarded (weight 0), as the paper prescribes, and so are
-    samples too far behind the measured depth (:func:`query_samples`). ``z`` (R, S) gives the sample
-    depths instead of drawing them.
+    samples too far behind the measured depth and, with ``observed_only``, samples in space no keyframe
+    has seen (:func:`query_samples`). ``z`` (R, S) gives the sample depths instead of drawing them.
     """
     if z is None:
         z = sample_depths(rays.depth_m, cfg.sampling, stratified=stratified, generator=generator)  # (R, S)
     r, s = z.shape
     points = rays.origins[:, None, :] + z[..., None] * rays.dirs[:, None, :]  # (R, S, 3)
-    sample = query_samples(block_map, points, z, rays.depth_m, cfg.sampling, block_ids, with_colour)
+    sample = query_samples(block_map, points, z, rays.depth_m, cfg.sampling, block_ids, with_colour, observed_only)
     sdf = sample.sdf.reshape(r, s)
     valid = sample.valid.reshape(r, s)
     w = sdf_weights(sdf, z, valid, cfg.truncation_m)
@@ -101,10 +107,13 @@ def objective(
     generator: torch.Generator | None = None,
     with_smoothness: bool = True,
     z: torch.Tensor | None = None,
+    observed_only: bool = False,
 ) -> tuple[Objective, RenderOutput]:
     """Render ``rays`` and evaluate the paper's weighted objective on them (at sample depths ``z`` when
-    given, else stratified ones)."""
-    out = render_rays(block_map, rays, cfg, block_ids, stratified=True, generator=generator, z=z)
+    given, else stratified ones; ``observed_only``: see :func:`render_rays`)."""
+    out = render_rays(
+        block_map, rays, cfg, block_ids, stratified=True, generator=generator, z=z, observed_only=observed_only
+    )
     terms = render_residuals(
         cfg.weights,
         cfg.truncation_m,

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from ..config import BlockConfig, DecoderConfig, OneBlobConfig
@@ -89,6 +90,7 @@ class BlockMap(nn.Module):
             self.block_cfg.grid,
             backend=self.grid_backend,
             seed=self.seed * 100_003 + block_id,
+            observed_voxel_m=self.block_cfg.observed_voxel_m,
         )
         self.blocks.append(block.to(self.device))
         return block
@@ -252,6 +254,86 @@ class BlockMap(nn.Module):
             _, _, d_sdf, d_rgb = self.decoders.forward_with_tangents(blob, feats, slopes, d_feats)
             grads = torch.cat([d_sdf[..., None], d_rgb], dim=-1)  # (N, axis, output)
             return grads.permute(2, 0, 1) * valid[None, :, None].to(grads.dtype)
+
+    # ------------------------------------------------------------------ observed space
+
+    def mark_observed(
+        self, depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray, truncation_m: float
+    ) -> int:
+        """Record the space a keyframe saw: every voxel of every block whose centre projects into the depth
+        image ``depth_m`` (H, W) at ``T_world_cam`` onto a pixel with depth, no deeper than that depth plus
+        ``truncation_m`` (the SDF band behind the surface) plus half a voxel diagonal (a point in the
+        voxel may lie that much nearer than its centre). The depth a centre is compared with is the
+        deepest within the voxel's footprint (its width in pixels at the frame's median depth). Only
+        voxels in the bounding box of the camera centre and the back-projected surface are tested.
+        Returns the number of newly observed voxels; nothing without a record (``block.observed_voxel_m``
+        0)."""
+        if not len(self.blocks) or self.blocks[0].voxel_m <= 0:
+            return 0
+        depth = np.asarray(depth_m, dtype=np.float32)
+        valid = depth > 0
+        if not valid.any():
+            return 0
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        k = intrinsics
+        v, u = np.nonzero(valid)
+        z = depth[v, u].astype(np.float64) + truncation_m
+        surface = np.stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z], axis=1) @ T[:3, :3].T + T[:3, 3]
+        lo = np.minimum(surface.min(axis=0), T[:3, 3])
+        hi = np.maximum(surface.max(axis=0), T[:3, 3])
+        dev = self.device
+        R_cw = torch.as_tensor(T[:3, :3].T, dtype=torch.float32, device=dev)
+        t_cw = torch.as_tensor(-T[:3, :3].T @ T[:3, 3], dtype=torch.float32, device=dev)
+        depth_t = torch.as_tensor(depth, device=dev)
+        # a voxel's footprint at the frame's median depth: a voxel counts as seen where any pixel of its
+        # footprint saw through it (the deepest), so holes and depth edges of a real sensor do not
+        # punch unobserved voxels into surfaces the frame saw
+        half = int(0.5 * k.fx * self.blocks[0].voxel_m / float(np.median(depth[valid])))
+        if half > 0:
+            depth_t = F.max_pool2d(depth_t[None, None], 2 * half + 1, stride=1, padding=half)[0, 0]
+        added = 0
+        for block in self.blocks:
+            n, vox = block.observed.shape[0], block.voxel_m
+            corner = block.min_corner.detach().cpu().double().numpy()
+            i0 = np.clip(np.floor((lo - corner) / vox).astype(int), 0, n)
+            i1 = np.clip(np.ceil((hi - corner) / vox).astype(int), 0, n)
+            if np.any(i1 <= i0):
+                continue
+            axes = [torch.arange(int(a), int(b), device=dev) for a, b in zip(i0, i1, strict=True)]
+            idx = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+            centres = block.min_corner.to(dev) + (idx.to(torch.float32) + 0.5) * vox
+            cam = centres @ R_cw.T + t_cw
+            zc = cam[:, 2]
+            in_front = zc > 1e-6
+            zs = torch.where(in_front, zc, torch.ones_like(zc))
+            px = torch.round(k.fx * cam[:, 0] / zs + k.cx).long()
+            py = torch.round(k.fy * cam[:, 1] / zs + k.cy).long()
+            inside = in_front & (px >= 0) & (px < depth.shape[1]) & (py >= 0) & (py < depth.shape[0])
+            d = torch.zeros_like(zc)
+            d[inside] = depth_t[py[inside], px[inside]]
+            seen = inside & (d > 0) & (zc <= d + truncation_m + 0.5 * np.sqrt(3.0) * vox)
+            hit = idx[seen]
+            grid = block.observed
+            added += int((~grid[hit[:, 0], hit[:, 1], hit[:, 2]]).sum())
+            grid[hit[:, 0], hit[:, 1], hit[:, 2]] = True
+        return added
+
+    def observed(self, points_world: torch.Tensor, block_ids: list[int] | None = None) -> torch.Tensor:
+        """``(N,)`` bool: the point lies in an observed voxel (:meth:`mark_observed`) of one of the blocks
+        ``block_ids`` (all when None) that contain it. Without a record (``block.observed_voxel_m`` 0)
+        every point counts as observed."""
+        ids = list(range(len(self.blocks))) if block_ids is None else list(block_ids)
+        if not ids or self.blocks[ids[0]].voxel_m <= 0:
+            return torch.ones(points_world.shape[0], dtype=torch.bool, device=points_world.device)
+        out = torch.zeros(points_world.shape[0], dtype=torch.bool, device=points_world.device)
+        for i in ids:
+            block = self.blocks[i]
+            n = block.observed.shape[0]
+            idx = torch.floor(block.to_local(points_world.detach()) * n).long()
+            inside = ((idx >= 0) & (idx < n)).all(dim=-1)
+            idx = idx.clamp(0, n - 1)
+            out |= inside & block.observed[idx[:, 0], idx[:, 1], idx[:, 2]]
+        return out
 
     # ------------------------------------------------------------------ allocation
 

@@ -27,7 +27,9 @@ def save_map(
     Each block's entry holds ``keyframe_ids``: its keyframes in ``block_keyframes`` (block id -> keyframe
     ids, the run's :meth:`~neb_slam_core.mapping.keyframes.KeyframeStore.block_keyframes`), empty when
     not given. The field is part of format version 1; :func:`load_map` does not read it back, since
-    keyframes belong to the run that saved the map. Written to a temporary file first and renamed, so an
+    keyframes belong to the run that saved the map. ``observed`` is the block's record of the voxels its
+    keyframes saw (:class:`~.block.NeuralBlock`); a map without it (or with another voxel size) loads with
+    the whole block observed. Written to a temporary file first and renamed, so an
     interrupted save never leaves a broken file.
     """
     block_keyframes = block_keyframes or {}
@@ -48,6 +50,7 @@ def save_map(
                 "id": b.block_id,
                 "centre": b.centre.detach().cpu(),
                 "table": b.grid.table.detach().cpu(),
+                "observed": b.observed.detach().cpu(),
                 "keyframe_ids": [int(k) for k in block_keyframes.get(b.block_id, ())],
             }
             for b in block_map.blocks
@@ -97,5 +100,10 @@ def load_map(path: str | Path, device: str | torch.device = "cpu", grid_backend:
             )
         with torch.no_grad():
             block.grid.table.copy_(entry["table"])
+        observed = entry.get("observed")
+        if observed is not None and observed.shape == block.observed.shape:
+            block.observed.copy_(observed)
+        else:  # a map saved without the record (or with another voxel size): all of it counts as observed
+            block.observed.fill_(True)
     block_map.decoders.load_state_dict(payload["decoders"])
     return block_map, payload.get("extra", {})

@@ -136,19 +136,22 @@ def evaluate_pose(
     z: torch.Tensor,
     cfg: RenderConfig,
     block_ids: list[int] | None,
+    observed_only: bool = False,
 ) -> PoseEvaluation:
     """The tracking objective at ``T_world_cam`` with fixed sample depths ``z`` (R, S).
 
     The residuals are the objective's terms (:func:`~neb_slam_core.render.losses.render_residuals`), so
-    ``cost`` equals ``objective(...).total`` without smoothness for the same ``z``. Call it with the map's
-    parameters frozen.
+    ``cost`` equals ``objective(...).total`` without smoothness for the same ``z`` and ``observed_only``
+    (:func:`~neb_slam_core.render.renderer.query_samples`). Call it with the map's parameters frozen.
     """
     T = torch.as_tensor(T_world_cam, dtype=torch.float32, device=z.device)
     rays = pixels.to_world(T)
     r_count, s_count = z.shape
     points = rays.origins[:, None, :] + z[..., None] * rays.dirs[:, None, :]  # (R, S, 3)
     with torch.no_grad():
-        sample = query_samples(block_map, points, z, pixels.depth_m, cfg.sampling, block_ids)
+        sample = query_samples(
+            block_map, points, z, pixels.depth_m, cfg.sampling, block_ids, observed_only=observed_only
+        )
     valid = sample.valid.reshape(r_count, s_count)
 
     # rendering, with the weights' slopes in the samples' SDF (colours enter linearly)

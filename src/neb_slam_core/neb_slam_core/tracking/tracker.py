@@ -2,7 +2,8 @@
 
 N_t random pixels with valid depth and the paper's objective without the smoothness term (which does
 not depend on the pose). Only rays whose observed surface lies inside a block in the frustum
-contribute (:func:`~neb_slam_core.render.volume.observed_rays`), so unmapped space never pulls the pose. Two
+contribute (:func:`~neb_slam_core.render.volume.observed_rays`), and with ``observed_only`` only samples
+in space some keyframe has seen (``block.observed_voxel_m``), so unmapped space never pulls the pose. Two
 optimisers (``TrackingConfig.method``):
 
 - ``adam``, the paper's: a fixed number of Adam steps with fresh stratified samples each; the pose
@@ -92,7 +93,13 @@ class Tracker:
         for _ in range(self.cfg.iterations):
             rays = px.to_world(pose.matrices()[0])
             loss, out = objective(
-                block_map, rays, self.render_cfg, ids, generator=self.generator, with_smoothness=False
+                block_map,
+                rays,
+                self.render_cfg,
+                ids,
+                generator=self.generator,
+                with_smoothness=False,
+                observed_only=self.cfg.observed_only,
             )
             n_valid = int(out.observed.sum())
             value = float(loss.total.detach())
@@ -144,7 +151,7 @@ class Tracker:
         """At most ``iterations`` Levenberg-Marquardt steps from ``T`` on the pixels ``px`` with sample
         depths ``z``, until a step moves less than ``stop_step_m``: the pose, its evaluation, the steps."""
         c = self.cfg
-        ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids)
+        ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids, c.observed_only)
         if ev.n_valid_rays < min_valid_rays:
             return T, ev, 0
         H, g = normal_equations(ev, block_map, ids, self.gradients)
@@ -156,7 +163,7 @@ class Tracker:
             except np.linalg.LinAlgError:
                 break
             T_new = apply_step(T, step)
-            new = evaluate_pose(block_map, px, T_new, z, self.render_cfg, ids)
+            new = evaluate_pose(block_map, px, T_new, z, self.render_cfg, ids, c.observed_only)
             accepted = new.n_valid_rays >= min_valid_rays and new.cost < ev.cost
             if accepted:
                 T, ev = T_new, new

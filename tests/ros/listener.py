@@ -1,13 +1,15 @@
 """An independent subscriber process (what another robot's stack would be): it records what the suite
 publishes on pose, path, blocks and mesh (the markers it holds, each message updating the blocks it names),
-and on SIGINT writes a JSON summary to the path given as argv[1]."""
+odometry (each pose covariance's diagonal) and /diagnostics (the tracking statuses), and on SIGINT writes
+a JSON summary to the path given as argv[1]."""
 
 import json
 import sys
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Path
+from nav_msgs.msg import Odometry, Path
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
@@ -19,6 +21,8 @@ seen = {
     "block_ids": [],
     "mesh_markers": 0,
     "mesh_points": 0,
+    "odometry": [],  # [stamp, the covariance's diagonal]
+    "diagnostics": [],  # [level, message, {key: value}] of the tracking statuses, in order
 }
 
 
@@ -53,6 +57,17 @@ def main() -> None:
         seen["mesh_markers"] = len(mesh)
         seen["mesh_points"] = sum(mesh.values())
 
+    node.create_subscription(
+        Odometry, "odometry", lambda m: seen["odometry"].append([stamp(m), list(m.pose.covariance)[::7]]), stream
+    )
+
+    def on_diagnostics(m):
+        for st in m.status:
+            if st.name.endswith(": tracking"):
+                values = {k.key: k.value for k in st.values}
+                seen["diagnostics"].append([int.from_bytes(st.level, "little"), st.message, values])
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, stream)
     node.create_subscription(MarkerArray, "blocks", on_blocks, state)
     node.create_subscription(MarkerArray, "mesh", on_mesh, state)
     print("listener ready", file=sys.stderr, flush=True)

@@ -131,6 +131,15 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
     )
     for name in ("groundtruth.txt", "metrics.json", "trajectory.png", "config.yaml"):
         assert (run.run_dir / name).is_file(), name
+    # tracking health: the first pose defines the map frame (zero covariance), every tracked one has a
+    # positive one, far below the variance of a pose without an estimate; /diagnostics says "tracking"
+    from neb_slam_ros.conversions import UNKNOWN_VARIANCE
+
+    odometry = dict((s, d) for s, d in seen["odometry"])
+    assert set(odometry) <= set(stamps) and len(odometry) >= N_FRAMES - 1
+    for s, diag in odometry.items():
+        assert diag == [0.0] * 6 if s == stamps[0] else all(0 < v < 1e-2 * UNKNOWN_VARIANCE for v in diag), diag
+    assert seen["diagnostics"] and seen["diagnostics"][-1][:2] == [0, "tracking"], seen["diagnostics"]
 
 
 def test_separate_processes_replay_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):
@@ -274,3 +283,38 @@ def test_bad_input_is_warned_about_and_skipped_and_the_tracker_keeps_running(ros
         assert text in out, f"missing warning {text!r} in:\n{out}"
     # frames 2, 3, 4 (held for the camera info) and 10 were accepted: the summary line counts them
     assert "tracker stopped" in out
+
+
+def test_a_failed_frame_shows_in_the_covariance_and_on_diagnostics(ros_env, tmp_path):
+    """Frame 7 of a 9-frame replay has its depth blanked but for 4 pixels in a corner: tracking fails on
+    it (no ray of the map's observed space left), and an independent subscriber sees the odometry
+    covariance jump to the unknown-pose variance on exactly that frame and /diagnostics go from OK to
+    WARN ("lost", with the reason) and back to OK when frame 8 is tracked."""
+    import dataclasses
+
+    from neb_slam_core.datasets import open_dataset
+    from neb_slam_core.io.bag import BagWriteOptions, write_bag
+    from neb_slam_core.synth.generate import generate
+    from neb_slam_ros.conversions import UNKNOWN_VARIANCE
+
+    ds = open_dataset(generate("small", tmp_path / "scene", n_frames=9, progress=False))
+    frames = [ds[i] for i in range(9)]
+    broken = {7}
+    for i in broken:
+        depth = np.zeros_like(frames[i].depth_m)  # a frame without any valid depth is refused as bad input
+        depth[:2, :2] = frames[i].depth_m[:2, :2]
+        frames[i] = dataclasses.replace(frames[i], depth_m=depth)
+    bag = tmp_path / "bag"
+    write_bag(frames, bag, BagWriteOptions(depth_encoding="32FC1"), progress=False)
+    run, seen, logs = _run_suite(bag, tmp_path / "slam", ros_env, one_process=True)
+    assert all(code == 0 for code in run.exit_codes.values()), (run.exit_codes, logs)
+    stamps = [f.stamp_ns for f in frames]
+    odometry = dict((s, d) for s, d in seen["odometry"])
+    failed = {stamps.index(s) for s, d in odometry.items() if d == [UNKNOWN_VARIANCE] * 6}
+    assert failed == broken, (failed, odometry)
+    levels = [(level, message.split(":")[0]) for level, message, _ in seen["diagnostics"]]
+    # every change of state goes out at once, in order; the periodic repeats in between say the same
+    changes = [x for i, x in enumerate(levels) if i == 0 or x != levels[i - 1]]
+    assert changes[-3:] == [(0, "tracking"), (1, "lost"), (0, "tracking")], levels
+    last = seen["diagnostics"][-1][2]
+    assert last["tracking_failures"] == "1" and last["frames_processed"] == "9", last

@@ -310,7 +310,8 @@ class LiveSlam:
                 if rest > 0:
                     background.append(_Work("first", rest, False))
             else:
-                self.backend.add_keyframe(s.frame, s.result.T_world_cam, s.result.frame_index, False)
+                step = self.backend.add_keyframe(s.frame, s.result.T_world_cam, s.result.frame_index, False)
+                changed |= step.changed_block_ids  # the blocks whose observed space grew
                 map_now = map_now or s.map_now
         if map_now:
             changed |= self.backend.mapper.optimise().changed_block_ids
@@ -433,7 +434,8 @@ def snapshot(
     block_map: BlockMap, block_ids, version: int, keyframe_poses: np.ndarray, keyframe_stamps_ns: np.ndarray
 ) -> map_update.MapUpdate:
     """A :class:`~neb_slam_core.scene.map_update.MapUpdate` of ``block_map`` in memory: copies of the tables
-    of ``block_ids``, of the decoders and of the keyframe poses, for another thread to apply."""
+    and observed-space records of ``block_ids``, of the decoders and of the keyframe poses, for another
+    thread to apply."""
     blocks = []
     for i in sorted(int(b) for b in block_ids):
         block = block_map.blocks[i]
@@ -442,6 +444,7 @@ def snapshot(
                 i,
                 block.centre.detach().cpu().numpy().copy(),
                 block.grid.table.detach().cpu().reshape(-1).clone().numpy(),
+                map_update.pack_observed(block.observed),
             )
         )
     decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().clone().numpy()

@@ -362,7 +362,7 @@ class Frontend:
             index % c.mapping.every == 0 or new_block is not None or self._keyframe_due(frame.stamp_ns)
         )
         is_keyframe = (ok or index == 0) and (index % c.keyframes.every == 0 or map_now or recovered)
-        keyframe_id = self._add_keyframe(frame, T) if is_keyframe else None
+        keyframe_id = self._add_keyframe(T) if is_keyframe else None
         self._record(frame.stamp_ns, T)
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
         result = StepResult(
@@ -377,6 +377,7 @@ class Frontend:
             False,
             len(self.block_map),
             timings,
+            covariance=tracked.covariance if ok else None,
         )
         return FrontendStep(result, frame, keyframe_id, map_now, False)
 
@@ -434,7 +435,7 @@ class Frontend:
         t0 = time.perf_counter()
         new_block, tau = self._allocate(frame, T)
         timings = StepTimings(allocate_ms=1e3 * (time.perf_counter() - t0))
-        keyframe_id = self._add_keyframe(frame, T)
+        keyframe_id = self._add_keyframe(T)
         self._record(frame.stamp_ns, T)
         self._ok_streak = 1
         self._tracked = [0]
@@ -451,6 +452,7 @@ class Frontend:
             False,
             len(self.block_map),
             timings,
+            covariance=np.zeros((6, 6)),
         )
         return FrontendStep(result, frame, keyframe_id, True, True)
 
@@ -523,13 +525,7 @@ class Frontend:
         )
         return alloc.block, alloc.tau
 
-    def observe(self, frame: RgbdFrame, T: np.ndarray) -> None:
-        """Record the space ``frame`` at ``T`` saw in the map's blocks (``tracking.observed_only``
-        tracks against that space alone)."""
-        self.block_map.mark_observed(frame.depth_m, frame.intrinsics, T, self.cfg.render.truncation_m)
-
-    def _add_keyframe(self, frame: RgbdFrame, T: np.ndarray) -> int:
-        self.observe(frame, T)
+    def _add_keyframe(self, T: np.ndarray) -> int:
         link = invert(self.keyframe_poses[-1]) @ T if self.keyframe_poses else np.eye(4)
         self._keyframe_links.append(np.array(link, dtype=np.float64))
         self._keyframe_frames.append(self.n_frames)
@@ -569,13 +565,18 @@ class Backend:
         first: bool = False,
         first_iterations: int | None = None,
     ) -> MappingStep:
-        """Store keyframe ``frame`` (rectified) at ``T_world_cam``; then initialise the map on it
-        (``first``: ``first_iterations`` map-only steps on all its pixels, ``mapping.first_iterations`` when
-        None) or run a joint optimisation step (``map_now``)."""
+        """Store keyframe ``frame`` (rectified) at ``T_world_cam`` and record the space it saw in the map's
+        blocks (:meth:`~neb_slam_core.scene.block_map.BlockMap.mark_observed`, the space tracking uses with
+        ``tracking.observed_only``); then initialise the map on it (``first``: ``first_iterations``
+        map-only steps on all its pixels, ``mapping.first_iterations`` when None) or run a joint
+        optimisation step (``map_now``). The step's changed blocks include those whose record grew."""
         kf = self.keyframes.add(frame, T_world_cam, frame_index)
         self._assign_blocks(kf)
+        marked = self.block_map.mark_observed(
+            frame.depth_m, frame.intrinsics, T_world_cam, self.cfg.render.truncation_m
+        )
         if not (first or map_now):
-            return MappingStep(kf, False, 0.0)
+            return MappingStep(kf, False, 0.0, marked)
         t0 = time.perf_counter()
         if first:
             rays = all_pixels(frame, device=self.block_map.device).to_world(
@@ -585,7 +586,7 @@ class Backend:
             res = self.mapper.optimise_on_rays(rays, n)
         else:
             res = self.mapper.optimise()
-        return MappingStep(kf, True, 1e3 * (time.perf_counter() - t0), res.changed_block_ids)
+        return MappingStep(kf, True, 1e3 * (time.perf_counter() - t0), res.changed_block_ids | marked)
 
     def _assign_blocks(self, kf: Keyframe) -> None:
         """Make ``kf`` a keyframe of every block holding more than a tenth of its observed points at its
@@ -665,7 +666,6 @@ class KnownPoseMapping:
         frame = self.frontend._rectify(frame)
         T = self._pose(frame, T_world_cam)
         self.frontend._allocate(frame, T)
-        self.frontend.observe(frame, T)
         return self.backend.add_keyframe(frame, T, len(self.keyframes), map_now=False).keyframe
 
     def optimise(self, iterations: int, progress: bool = False) -> list[float]:

@@ -152,6 +152,9 @@ class StepResult:
         n_blocks: blocks in the map after this frame.
         timings: per-stage times.
         loop: the loop detected at this keyframe (applied or not), or None.
+        covariance: the tracked pose's covariance, 6x6 over (tx, ty, tz, rx, ry, rz) in the world frame
+            (:func:`~neb_slam_core.tracking.gauss_newton.pose_covariance`): zeros for the first frame of
+            an empty map (it defines the frame), None when tracking failed or gave none.
     """
 
     frame_index: int
@@ -166,3 +169,4 @@ class StepResult:
     n_blocks: int = 0
     timings: StepTimings = field(default_factory=StepTimings)
     loop: LoopEvent | None = None
+    covariance: np.ndarray | None = None

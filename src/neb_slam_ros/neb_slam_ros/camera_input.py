@@ -128,6 +128,11 @@ class CameraInput:
         """A frame is queued (read with the condition held)."""
         return bool(self._queue)
 
+    @property
+    def queued(self) -> int:
+        """Frames waiting for the engine."""
+        return len(self._queue)
+
     def pop(self) -> RgbdFrame | None:
         """The oldest queued frame, or None (call with the condition held)."""
         return self._queue.popleft() if self._queue else None

@@ -183,12 +183,34 @@ def pose_msg(T_world_cam: np.ndarray, ns: int, frame_id: str) -> PoseStamped:
     )
 
 
+#: the variance (m^2 and rad^2) on the diagonal of a pose without a covariance (tracking failed and the
+#: pose is the motion prediction): large enough that a filter fusing it gives it no weight, the value
+#: rtabmap_ros publishes for a lost odometry
+UNKNOWN_VARIANCE = 9999.0
+
+
+def covariance_field(covariance: np.ndarray | None) -> list[float]:
+    """The 36 row-major floats of a ROS pose covariance over (x, y, z, rot x, rot y, rot z) from a 6x6
+    matrix in that order; None (no estimate) gives :data:`UNKNOWN_VARIANCE` on the diagonal."""
+    if covariance is None:
+        covariance = np.diag(np.full(6, UNKNOWN_VARIANCE))
+    return [float(v) for v in np.asarray(covariance, dtype=np.float64).reshape(36)]
+
+
 def odometry_msg(
-    T_world_cam: np.ndarray, ns: int, T_prev: np.ndarray | None, prev_ns: int | None, frame_id: str, child_frame_id: str
+    T_world_cam: np.ndarray,
+    ns: int,
+    T_prev: np.ndarray | None,
+    prev_ns: int | None,
+    frame_id: str,
+    child_frame_id: str,
+    covariance: np.ndarray | None = None,
 ) -> Odometry:
-    """Pose plus the twist (in the camera frame, as nav_msgs/Odometry wants) from the previous pose."""
+    """Pose with its ``covariance`` (:func:`covariance_field`) plus the twist (in the camera frame, as
+    nav_msgs/Odometry wants) from the previous pose."""
     msg = Odometry(header=header(ns, frame_id), child_frame_id=child_frame_id)
     msg.pose.pose = pose_msg(T_world_cam, ns, frame_id).pose
+    msg.pose.covariance = covariance_field(covariance)
     if T_prev is not None and prev_ns is not None and ns > prev_ns:
         dt = (ns - prev_ns) * 1e-9
         delta = invert(T_prev) @ T_world_cam  # motion in the previous camera frame

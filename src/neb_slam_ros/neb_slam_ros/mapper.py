@@ -189,10 +189,11 @@ class MapperNode(NebNode):
             f"keyframe {meta.keyframe_id} (frame {meta.frame_index}) integrated"
             + (f", mapped in {step.map_ms:.0f} ms" if step.mapped else "")
         )
+        self._unsent_blocks |= step.changed_block_ids  # without mapping: the blocks whose observed space grew
         if step.mapped:
             self._n_mapping_steps += 1
             self._map_ms += step.map_ms
-            self._publish_update(step.changed_block_ids | self._unsent_blocks, meta.stamp_ns)
+            self._publish_update(self._unsent_blocks, meta.stamp_ns)
             self._unsent_blocks.clear()
 
     def _correct(self, loop_stamp_ns: int, stamps: np.ndarray, poses: np.ndarray) -> bool:

@@ -4,6 +4,7 @@
   side (the ``tracker`` and the one-process ``slam``).
 - :class:`MapOutputs`: ``mesh`` and the ``save_mesh`` / ``save_map`` services of the mapping side (the
   ``mapper`` and ``slam``), run in the node's worker thread (the map's owner).
+- :class:`HealthOutput`: the tracking state and the node's counters on ``/diagnostics``.
 
 ``path`` and ``mesh`` grow with the run (every frame, every surface), so neither is rebuilt per frame:
 the path goes out at most every ``path_period_s``, the mesh only to subscribers and only for the blocks
@@ -17,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
@@ -163,10 +165,69 @@ class PoseOutputs:
         last: lockstep replay publishes the next frame (or ends the process) when it arrives."""
         prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
         self.pub_odom.publish(
-            conversions.odometry_msg(r.T_world_cam, r.stamp_ns, prev_T, prev_ns, self.frame_id, CAMERA_FRAME)
+            conversions.odometry_msg(
+                r.T_world_cam, r.stamp_ns, prev_T, prev_ns, self.frame_id, CAMERA_FRAME, r.covariance
+            )
         )
         self._prev = (r.T_world_cam, r.stamp_ns)
         self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, self.frame_id))
+
+
+class HealthOutput:
+    """The tracking health of ``node`` on ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, what
+    ``rqt_robot_monitor`` and the diagnostic aggregator read): one status named ``<node name>: tracking``,
+    level OK while frames are tracked and WARN from a failed frame until one is tracked again, the message
+    saying which (with the failure's reason), and as key-values the counters ``values()`` returns (frames
+    in, tracked, dropped, failures, queue, mapping lag, blocks, keyframes, loops). Published every
+    ``period_s`` and at once when the state changes."""
+
+    def __init__(self, node, inputs, values: Callable[[], dict[str, object]], period_s: float = 1.0):
+        """``inputs``: the node's :class:`~neb_slam_ros.camera_input.CameraInput` (frames in, dropped,
+        queued); ``values``: the engine's counters."""
+        self.node = node
+        self.inputs = inputs
+        self.values = values
+        self.name = f"{node.get_name()}: tracking"
+        self.pub = node.create_publisher(DiagnosticArray, "/diagnostics", qos.events(10))
+        self.tracking: bool | None = None  # None: no frame yet
+        self.reason = ""
+        self.failures = 0
+        node.create_timer(period_s, self.publish)
+
+    def frame(self, r: StepResult) -> None:
+        """Account for a processed frame; a change of state goes out at once."""
+        self.failures += int(not r.tracking_ok)
+        changed = r.tracking_ok != self.tracking
+        self.tracking, self.reason = r.tracking_ok, r.failure_reason
+        if changed:
+            self.publish()
+
+    def status(self) -> DiagnosticStatus:
+        if self.tracking is None:
+            level, message = DiagnosticStatus.OK, "waiting for the first frame"
+        elif self.tracking:
+            level, message = DiagnosticStatus.OK, "tracking"
+        else:
+            level, message = DiagnosticStatus.WARN, f"lost: {self.reason}"
+        values = {
+            "tracking_failures": self.failures,
+            "frames_in": self.inputs.n_accepted,
+            "frames_dropped": self.inputs.n_dropped,
+            "queue": self.inputs.queued,
+            **self.values(),
+        }
+        return DiagnosticStatus(
+            level=level,
+            name=self.name,
+            message=message,
+            hardware_id="",
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()],
+        )
+
+    def publish(self) -> None:
+        msg = DiagnosticArray(status=[self.status()])
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        self.pub.publish(msg)
 
 
 def block_centres(block_map) -> np.ndarray:

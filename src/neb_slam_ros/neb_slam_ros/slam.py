@@ -38,7 +38,7 @@ from neb_slam_core.types import RgbdFrame
 from neb_slam_ros._node_main import run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
 from neb_slam_ros.node import NebNode
-from neb_slam_ros.outputs import FINAL_MESH_ACK_S, MapOutputs, PoseOutputs, block_centres
+from neb_slam_ros.outputs import FINAL_MESH_ACK_S, HealthOutput, MapOutputs, PoseOutputs, block_centres
 from neb_slam_ros.params import declare_options, map_parameter, require
 
 
@@ -97,6 +97,7 @@ class SlamNode(NebNode):
         self.poses = PoseOutputs(
             self, self.opt.frame_id, self.cfg.block.edge_m, lambda: self.slam.trajectory(), self.opt.path_period_s
         )
+        self.health = HealthOutput(self, self.input, self._health_values)
         self.map_outputs = MapOutputs(
             self,
             self.opt.frame_id,
@@ -170,11 +171,22 @@ class SlamNode(NebNode):
         if r.new_block_id is not None:
             self.poses.publish_blocks(block_centres(self.slam.block_map), r.stamp_ns)
         self.poses.publish_frame(r)
+        self.health.frame(r)
         if not r.tracking_ok:
             self.get_logger().warning(
                 f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
                 "kept the motion prediction"
             )
+
+    def _health_values(self) -> dict[str, object]:
+        slam = self.slam
+        return {
+            "frames_processed": 0 if slam is None else slam.n_frames,
+            "mapping_lag": slam.stats.mapping_lag if isinstance(slam, LiveSlam) else 0,
+            "blocks": 0 if slam is None else len(slam.block_map),
+            "keyframes": 0 if slam is None else len(slam.frontend.keyframe_poses),
+            "loops_applied": self._loops_applied,
+        }
 
     # ------------------------------------------------------------------ shutdown
 

@@ -42,7 +42,7 @@ from neb_slam_ros._node_main import run_node
 from neb_slam_ros.camera_input import CameraInput, InputOptions
 from neb_slam_ros.keyframe_link import KeyframeMeta
 from neb_slam_ros.node import NebNode
-from neb_slam_ros.outputs import CAMERA_FRAME, PoseOutputs, block_centres
+from neb_slam_ros.outputs import CAMERA_FRAME, HealthOutput, PoseOutputs, block_centres
 from neb_slam_ros.params import declare_options, require
 
 
@@ -103,6 +103,7 @@ class TrackerNode(NebNode):
         self.poses = PoseOutputs(
             self, self.opt.frame_id, self.cfg.block.edge_m, lambda: self.frontend.trajectory(), self.opt.path_period_s
         )
+        self.health = HealthOutput(self, self.input, self._health_values)
         self.pub_kf = {
             "rgb": self.create_publisher(Image, "keyframe/rgb", qos.keyframes()),
             "depth": self.create_publisher(Image, "keyframe/depth", qos.keyframes()),
@@ -233,11 +234,22 @@ class TrackerNode(NebNode):
             if step.keyframe_id is not None and self.opt.loop_sync:
                 self._awaited_loop = r.stamp_ns
         self.poses.publish_frame(r)
+        self.health.frame(r)
         if not r.tracking_ok:
             self.get_logger().warning(
                 f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
                 "kept the motion prediction"
             )
+
+    def _health_values(self) -> dict[str, object]:
+        f = self.frontend
+        return {
+            "frames_processed": 0 if f is None else f.n_frames,
+            "mapping_lag": self.mapping_lag(),
+            "blocks": len(self.block_map),
+            "keyframes": 0 if f is None else len(f.keyframe_poses),
+            "map_version": self._map_version,
+        }
 
     def _publish_keyframe(self, step: FrontendStep) -> None:
         r, f = step.result, step.frame

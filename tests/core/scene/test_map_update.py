@@ -16,19 +16,22 @@ SMALL_GRID = HashGridConfig(
 )
 
 
-def make_map(seed: int = 3) -> BlockMap:
-    return BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID), grid_backend="reference", seed=seed)
+def make_map(seed: int = 3, observed_voxel_m: float = 0.5) -> BlockMap:
+    cfg = BlockConfig(edge_m=5.0, grid=SMALL_GRID, observed_voxel_m=observed_voxel_m)
+    return BlockMap(cfg, grid_backend="reference", seed=seed)
 
 
-def trained(seed: int = 3) -> BlockMap:
-    """A sender's map with three blocks whose tables and decoders differ from their initial values."""
-    m = make_map(seed)
+def trained(seed: int = 3, observed_voxel_m: float = 0.5) -> BlockMap:
+    """A sender's map with three blocks whose tables, observed-space records (10^3 voxels each) and
+    decoders differ from their initial values."""
+    m = make_map(seed, observed_voxel_m)
     for c in ([0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [4.0, 4.0, -1.0]):
         m.add_block(c)
     g = torch.Generator().manual_seed(7)
     with torch.no_grad():
         for b in m.blocks:
             b.grid.table.copy_(torch.rand(b.grid.table.shape, generator=g))
+            b.observed.copy_(torch.rand(b.observed.shape, generator=g) < 0.3)
         for p in m.decoders.parameters():
             p.copy_(torch.rand(p.shape, generator=g))
     return m
@@ -42,25 +45,38 @@ def test_layout_sizes_are_the_documented_ones():
     )
     table_numel = m.blocks[0].grid.table.numel()
     n_decoder = sum(p.numel() for p in m.decoders.parameters())
-    assert len(data) == 52 + 2 * (16 + 4 * table_numel) + 4 * n_decoder + 2 * 8 + 2 * 128
+    record = 125  # 10^3 voxels, 8 a byte
+    assert len(data) == 56 + 2 * (16 + 4 * table_numel + record) + 4 * n_decoder + 2 * 8 + 2 * 128
     assert data[:4] == b"NEBU"
-    assert struct.unpack_from("<HHQq", data, 4) == (1, 0, 5, 123)
-    assert struct.unpack_from("<IIIIIq", data, 24) == (2, table_numel, n_decoder, 2, 52, 77)
-    # the first block record is block 0 (ids are sorted), its centre follows its id
-    assert struct.unpack_from("<I3f", data, 52) == (0, 0.0, 0.0, 0.0)
+    assert struct.unpack_from("<HHQq", data, 4) == (2, 0, 5, 123)
+    assert struct.unpack_from("<IIIIIqI", data, 24) == (2, table_numel, n_decoder, 2, 56, 77, record)
+    # the first block record is block 0 (ids are sorted), its centre follows its id, its record its table
+    assert struct.unpack_from("<I3f", data, 56) == (0, 0.0, 0.0, 0.0)
+    first = data[56 + 16 + 4 * table_numel :][:record]
+    bits = np.unpackbits(np.frombuffer(first, np.uint8), bitorder="little").astype(bool)
+    assert np.array_equal(bits, m.blocks[0].observed.numpy().reshape(-1))
     assert map_update.decode(data).loop_stamp_ns == 77
 
 
-def test_an_update_with_the_first_44_byte_header_reads_without_a_loop_stamp():
-    """Fields are appended after the first 44 header bytes; header_bytes tells a reader where the
-    blocks start, so an update without the appended field still decodes (loop stamp -1)."""
-    m = trained()
+@pytest.mark.parametrize("header_bytes", [44, 52])
+def test_a_format_1_update_still_reads(header_bytes):
+    """Format 1 had no observed-space records, and its first updates no loop stamp: header_bytes tells a
+    reader where the blocks start, so both decode (loop stamp -1 without it; no record, which leaves the
+    receiver's own record as it was)."""
+    m = trained(observed_voxel_m=0.0)  # no record: the blocks are laid out as format 1 lays them out
     data = map_update.encode(m, [1], 3, 9, [5], np.eye(4)[None], loop_stamp_ns=123)
-    old = bytearray(data[:44] + data[52:])
-    struct.pack_into("<I", old, 40, 44)
+    old = bytearray(data[:header_bytes] + data[56:])
+    struct.pack_into("<H", old, 4, 1)
+    struct.pack_into("<I", old, 40, header_bytes)
     u = map_update.decode(bytes(old))
-    assert (u.version, u.ack_stamp_ns, u.block_ids, u.loop_stamp_ns) == (3, 9, [1], -1)
+    loop = -1 if header_bytes == 44 else 123
+    assert (u.version, u.ack_stamp_ns, u.block_ids, u.loop_stamp_ns) == (3, 9, [1], loop)
     np.testing.assert_array_equal(u.blocks[0].table, map_update.decode(data).blocks[0].table)
+    receiver = make_map()
+    receiver.add_block([0.0, 0.0, 0.0])
+    receiver.blocks[0].observed.fill_(True)
+    map_update.apply(u, receiver)
+    assert receiver.blocks[0].observed.all() and not receiver.blocks[1].observed.any()
 
 
 def test_applying_updates_reproduces_the_senders_map_exactly():
@@ -77,6 +93,7 @@ def test_applying_updates_reproduces_the_senders_map_exactly():
     for i in (1, 2):
         assert torch.equal(receiver.blocks[i].grid.table, sender.blocks[i].grid.table)
         assert torch.equal(receiver.blocks[i].centre, sender.blocks[i].centre)
+        assert torch.equal(receiver.blocks[i].observed, sender.blocks[i].observed)
     for a, b in zip(receiver.decoders.parameters(), sender.decoders.parameters()):
         assert torch.equal(a, b)
     # block 0 was not in the update: the receiver's own table is untouched
@@ -134,3 +151,7 @@ def test_bad_updates_are_refused_with_what_is_wrong():
     )
     with pytest.raises(MapUpdateError, match="decoder config"):
         map_update.apply(map_update.decode(data), wider)
+    # a receiver with another observed-space voxel
+    coarser = make_map(observed_voxel_m=1.0)
+    with pytest.raises(MapUpdateError, match="125-byte observed-space record.*125 voxels"):
+        map_update.apply(map_update.decode(data), coarser)

@@ -89,7 +89,7 @@ def test_load_rejects_other_files(tmp_path):
 def test_the_observed_space_record_is_saved_and_a_map_without_it_counts_as_observed(tmp_path):
     m = small_map()
     k = Intrinsics(20.0, 20.0, 8.0, 6.0, 16, 12)
-    assert m.mark_observed(np.full((12, 16), 2.0, np.float32), k, np.eye(4), 0.1) > 0
+    assert m.mark_observed(np.full((12, 16), 2.0, np.float32), k, np.eye(4), 0.1) == {0, 1}
     seen = [b.observed.clone() for b in m.blocks]
     assert 0 < int(seen[0].sum()) < seen[0].numel()
     p = save_map(m, tmp_path / "map.pt")

@@ -259,21 +259,21 @@ class BlockMap(nn.Module):
 
     def mark_observed(
         self, depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray, truncation_m: float
-    ) -> int:
+    ) -> set[int]:
         """Record the space a keyframe saw: every voxel of every block whose centre projects into the depth
         image ``depth_m`` (H, W) at ``T_world_cam`` onto a pixel with depth, no deeper than that depth plus
         ``truncation_m`` (the SDF band behind the surface) plus half a voxel diagonal (a point in the
         voxel may lie that much nearer than its centre). The depth a centre is compared with is the
         deepest within the voxel's footprint (its width in pixels at the frame's median depth). Only
         voxels in the bounding box of the camera centre and the back-projected surface are tested.
-        Returns the number of newly observed voxels; nothing without a record (``block.observed_voxel_m``
-        0)."""
+        Returns the ids of the blocks with newly observed voxels; nothing without a record
+        (``block.observed_voxel_m`` 0)."""
         if not len(self.blocks) or self.blocks[0].voxel_m <= 0:
-            return 0
+            return set()
         depth = np.asarray(depth_m, dtype=np.float32)
         valid = depth > 0
         if not valid.any():
-            return 0
+            return set()
         T = np.asarray(T_world_cam, dtype=np.float64)
         k = intrinsics
         v, u = np.nonzero(valid)
@@ -291,7 +291,7 @@ class BlockMap(nn.Module):
         half = int(0.5 * k.fx * self.blocks[0].voxel_m / float(np.median(depth[valid])))
         if half > 0:
             depth_t = F.max_pool2d(depth_t[None, None], 2 * half + 1, stride=1, padding=half)[0, 0]
-        added = 0
+        grown = set()
         for block in self.blocks:
             n, vox = block.observed.shape[0], block.voxel_m
             corner = block.min_corner.detach().cpu().double().numpy()
@@ -314,9 +314,10 @@ class BlockMap(nn.Module):
             seen = inside & (d > 0) & (zc <= d + truncation_m + 0.5 * np.sqrt(3.0) * vox)
             hit = idx[seen]
             grid = block.observed
-            added += int((~grid[hit[:, 0], hit[:, 1], hit[:, 2]]).sum())
-            grid[hit[:, 0], hit[:, 1], hit[:, 2]] = True
-        return added
+            if bool((~grid[hit[:, 0], hit[:, 1], hit[:, 2]]).any()):
+                grid[hit[:, 0], hit[:, 1], hit[:, 2]] = True
+                grown.add(block.block_id)
+        return grown
 
     def observed(self, points_world: torch.Tensor, block_ids: list[int] | None = None) -> torch.Tensor:
         """``(N,)`` bool: the point lies in an observed voxel (:meth:`mark_observed`) of one of the blocks

@@ -1,15 +1,15 @@
 """The map update: the part of a block map that a mapping step changed, as one versioned byte string.
 
 The mapper sends it (ROS topic ``map_update``, std_msgs/UInt8MultiArray) to trackers that hold a copy of
-the map: the hash tables of the blocks it changed, all decoder parameters, and the current poses of all
-keyframes (mapping refines them). Applying every update in order reproduces the mapper's map exactly
-(float32 tables and decoders, float64 poses: no rounding on the way).
+the map: the hash tables and observed-space records of the blocks it changed, all decoder parameters,
+and the current poses of all keyframes (mapping refines them). Applying every update in order reproduces
+the mapper's map exactly (float32 tables and decoders, float64 poses: no rounding on the way).
 
-Binary layout, version 1, little-endian, no padding::
+Binary layout, version 2, little-endian, no padding::
 
-    header (52 bytes)
+    header (56 bytes)
       char[4]  magic            b"NEBU"
-      uint16   format           1
+      uint16   format           2 (1: without observed_bytes; still read)
       uint16   reserved         0
       uint64   version          update counter of the sender, 1, 2, 3, ... (receivers drop old ones)
       int64    ack_stamp_ns     stamp of the newest keyframe the map has integrated (-1: none)
@@ -17,13 +17,17 @@ Binary layout, version 1, little-endian, no padding::
       uint32   table_numel      float32 values per block table (L * T * F of the block config)
       uint32   n_decoder        float32 values of all decoder parameters
       uint32   n_keyframes      K
-      uint32   header_bytes     52 (readers skip to here: later versions may append fields)
+      uint32   header_bytes     56 (readers skip to here: later versions may append fields)
       int64    loop_stamp_ns    stamp of the newest ``loop_closure`` correction the map has handled (-1:
                                 none); appended after the first 44 bytes: a 44-byte header reads as -1
+      uint32   observed_bytes   bytes of each block's observed-space record (0: none); format 2
     B times
       uint32   block_id
       float32  centre_world[3]  metres
       float32  table[table_numel]   the block's hash table, row-major (entries, features)
+      uint8    observed[observed_bytes]  the block's (V, V, V) record of observed voxels
+                                (:class:`~.block.NeuralBlock`), flattened row-major, 8 voxels a byte,
+                                least significant bit first
     float32  decoders[n_decoder]    parameters in ``Decoders.parameters()`` order, each row-major
     int64    keyframe_stamps_ns[K]
     float64  keyframe_poses[K][4][4]   T_world_cam of keyframes 0..K-1, row-major
@@ -35,7 +39,7 @@ must then have every lower id already.
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -44,9 +48,11 @@ from ..errors import NebSlamError
 from .block_map import BlockMap
 
 MAGIC = b"NEBU"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_FORMATS = (1, 2)
 _HEADER = struct.Struct("<4sHHQqIIIII")  # the first 44 bytes; header_bytes says where the blocks start
-_HEADER_EXTRA = struct.Struct("<q")  # fields appended since: loop_stamp_ns
+_HEADER_EXTRA = struct.Struct("<qI")  # fields appended since: loop_stamp_ns, observed_bytes (format 2)
+_LOOP_STAMP = struct.Struct("<q")
 _BLOCK_HEAD = struct.Struct("<I3f")
 
 
@@ -56,11 +62,18 @@ class MapUpdateError(NebSlamError):
 
 @dataclass
 class BlockState:
-    """One block's identity and parameters: ``table`` is float32 ``(table_numel,)``."""
+    """One block's identity and parameters: ``table`` is float32 ``(table_numel,)``; ``observed`` its
+    observed-space record packed 8 voxels a byte (:func:`pack_observed`), empty without one."""
 
     block_id: int
     centre_world: np.ndarray
     table: np.ndarray
+    observed: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
+
+
+def pack_observed(observed: torch.Tensor) -> np.ndarray:
+    """A block's ``(V, V, V)`` bool record as bytes: row-major, 8 voxels a byte, least significant first."""
+    return np.packbits(observed.detach().cpu().numpy().reshape(-1), bitorder="little")
 
 
 @dataclass
@@ -98,6 +111,7 @@ def encode(
         raise ValueError(f"{len(stamps)} keyframe stamps for {len(poses)} poses")
     decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().numpy()
     table_numel = block_map.blocks[0].grid.table.numel() if len(block_map) else 0
+    observed_bytes = (block_map.blocks[0].observed.numel() + 7) // 8 if len(block_map) else 0
     parts = [
         _HEADER.pack(
             MAGIC,
@@ -111,13 +125,14 @@ def encode(
             len(stamps),
             _HEADER.size + _HEADER_EXTRA.size,
         ),
-        _HEADER_EXTRA.pack(loop_stamp_ns),
+        _HEADER_EXTRA.pack(loop_stamp_ns, observed_bytes),
     ]
     for i in ids:
         block = block_map.blocks[i]
         centre = block.centre.detach().cpu().numpy()
         parts.append(_BLOCK_HEAD.pack(i, *map(float, centre)))
         parts.append(block.grid.table.detach().cpu().numpy().astype("<f4", copy=False).tobytes())
+        parts.append(pack_observed(block.observed).tobytes())
     parts += [decoders.astype("<f4", copy=False).tobytes(), stamps.tobytes(), poses.tobytes()]
     return b"".join(parts)
 
@@ -130,19 +145,22 @@ def decode(data) -> MapUpdate:
     magic, fmt, _, version, ack, n_blocks, table_numel, n_decoder, n_kf, header_bytes = _HEADER.unpack_from(buf)
     if magic != MAGIC:
         raise MapUpdateError(f"not a map update: magic {bytes(magic)!r}, expected {MAGIC!r}")
-    if fmt != FORMAT_VERSION:
-        raise MapUpdateError(f"map update format {fmt} is not supported (this software reads {FORMAT_VERSION})")
+    if fmt not in READABLE_FORMATS:
+        raise MapUpdateError(f"map update format {fmt} is not supported (this software reads {READABLE_FORMATS})")
     if header_bytes < _HEADER.size or header_bytes > len(buf):
         raise MapUpdateError(f"map update header_bytes {header_bytes} is outside {_HEADER.size}..{len(buf)}")
-    loop_stamp = -1
-    if header_bytes >= _HEADER.size + _HEADER_EXTRA.size:
-        (loop_stamp,) = _HEADER_EXTRA.unpack_from(buf, _HEADER.size)
-    block_bytes = _BLOCK_HEAD.size + 4 * table_numel
+    loop_stamp, observed_bytes = -1, 0
+    if fmt >= 2 and header_bytes >= _HEADER.size + _HEADER_EXTRA.size:
+        loop_stamp, observed_bytes = _HEADER_EXTRA.unpack_from(buf, _HEADER.size)
+    elif header_bytes >= _HEADER.size + _LOOP_STAMP.size:
+        (loop_stamp,) = _LOOP_STAMP.unpack_from(buf, _HEADER.size)
+    block_bytes = _BLOCK_HEAD.size + 4 * table_numel + observed_bytes
     expected = header_bytes + n_blocks * block_bytes + 4 * n_decoder + 8 * n_kf + 128 * n_kf
     if len(buf) != expected:
         raise MapUpdateError(
             f"map update of {len(buf)} bytes, its header announces {expected} "
-            f"({n_blocks} blocks of {table_numel} values, {n_decoder} decoder values, "
+            f"({n_blocks} blocks of {table_numel} values and {observed_bytes} record bytes, "
+            f"{n_decoder} decoder values, "
             f"{n_kf} keyframes)"
         )
     offset = header_bytes
@@ -152,7 +170,9 @@ def decode(data) -> MapUpdate:
         offset += _BLOCK_HEAD.size
         table = np.frombuffer(buf, "<f4", table_numel, offset)
         offset += 4 * table_numel
-        blocks.append(BlockState(block_id, np.array([cx, cy, cz], dtype=np.float32), table))
+        observed = np.frombuffer(buf, np.uint8, observed_bytes, offset)
+        offset += observed_bytes
+        blocks.append(BlockState(block_id, np.array([cx, cy, cz], dtype=np.float32), table, observed))
     decoders = np.frombuffer(buf, "<f4", n_decoder, offset)
     offset += 4 * n_decoder
     stamps = np.frombuffer(buf, "<i8", n_kf, offset)
@@ -193,6 +213,15 @@ def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:
             )
         with torch.no_grad():
             block.grid.table.copy_(torch.from_numpy(state.table.copy()).view_as(block.grid.table))
+        if state.observed.size:
+            n = block.observed.numel()
+            if state.observed.size != (n + 7) // 8:
+                raise MapUpdateError(
+                    f"map update block {state.block_id} has a {state.observed.size}-byte observed-space "
+                    f"record, this map's blocks have {n} voxels (different block.observed_voxel_m?)"
+                )
+            bits = np.unpackbits(state.observed, count=n, bitorder="little").astype(bool)
+            block.observed.copy_(torch.from_numpy(bits).view_as(block.observed))
     with torch.no_grad():
         vec = torch.from_numpy(update.decoders.copy()).to(block_map.device)
         torch.nn.utils.vector_to_parameters(vec, block_map.decoders.parameters())

@@ -225,6 +225,28 @@ def normal_equations(
     return H.double().cpu().numpy(), g.double().cpu().numpy()
 
 
+def pose_covariance(H: np.ndarray, cost: float, n_rays: int) -> np.ndarray | None:
+    """The pose's covariance from the Gauss-Newton system ``H`` (6, 6 in (omega, dt)) at the optimum of an
+    objective of value ``cost`` over ``n_rays`` rays: ``s^2 H^-1`` with ``s^2 = cost / (n_rays - 6)``,
+    the objective's residual scale per measurement (weighted least squares whose weights are known up
+    to a common factor). A ray's colour, depth and SDF residuals share its pixel, so the rays, not the
+    residuals, count as the independent measurements. Returned over ``(tx, ty, tz, rx, ry, rz)`` (metres
+    and radians: the translation and the world-frame rotation vector of the update, the order of ROS
+    covariances); None when ``H`` is singular or there are no more rays than parameters."""
+    if n_rays <= 6 or not np.isfinite(cost):
+        return None
+    try:
+        cov = np.linalg.inv(H) * (cost / (n_rays - 6))
+    except np.linalg.LinAlgError:
+        return None
+    order = [3, 4, 5, 0, 1, 2]
+    cov = cov[np.ix_(order, order)]
+    cov = 0.5 * (cov + cov.T)
+    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
+        return None
+    return cov
+
+
 def damped_step(H: np.ndarray, g: np.ndarray, damping: float) -> np.ndarray:
     """The Levenberg-Marquardt step (omega, dt) of the system ``H``, ``g``: ``-(H + damping diag(H))^-1 g``,
     the diagonal floored at 1e-12 of its largest entry so that a direction the rays do not constrain

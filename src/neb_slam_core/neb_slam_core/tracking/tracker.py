@@ -33,6 +33,7 @@ from .gauss_newton import (
     damped_step,
     evaluate_pose,
     normal_equations,
+    pose_covariance,
     spatial_gradients,
 )
 
@@ -48,6 +49,8 @@ class TrackingResult:
             so rays into parts of a block the map has not learnt yet do not dominate it).
         n_valid_rays: rays whose observed surface lies inside a consulted block.
         iterations: optimisation steps taken.
+        covariance: the pose's covariance over (tx, ty, tz, rx, ry, rz) from the Gauss-Newton system at
+            that pose (:func:`~neb_slam_core.tracking.gauss_newton.pose_covariance`), or None.
     """
 
     T_world_cam: np.ndarray
@@ -55,6 +58,7 @@ class TrackingResult:
     depth_residual_m: float
     n_valid_rays: int
     iterations: int
+    covariance: np.ndarray | None = None
 
 
 class Tracker:
@@ -112,8 +116,11 @@ class Tracker:
             opt.step()
         value, T, resid, n_valid = best
         if not np.isfinite(value):  # never enough valid rays
-            n_valid = int(out.observed.sum())
-        return TrackingResult(T, value, resid, n_valid, self.cfg.iterations)
+            return TrackingResult(T, value, resid, int(out.observed.sum()), self.cfg.iterations)
+        z = sample_depths(px.depth_m, self.render_cfg.sampling, stratified=True, generator=self.generator)
+        ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids, self.cfg.observed_only)
+        H, _ = normal_equations(ev, block_map, ids, self.gradients)
+        return TrackingResult(T, value, resid, n_valid, self.cfg.iterations, pose_covariance(H, ev.cost, n_valid))
 
     def _levenberg_marquardt(
         self, block_map: BlockMap, px: PixelSamples, T_init: np.ndarray, ids: list[int]
@@ -134,9 +141,10 @@ class Tracker:
             n = c.coarse_rays
             subset = PixelSamples(px.dirs_cam[:n], px.rgb[:n], px.depth_m[:n], px.uv[:n])
             min_rays = max(1, c.min_valid_rays * n // len(px))
-            T, ev, coarse_steps = self._lm_stage(block_map, subset, z[:n], T, ids, c.coarse_stop_step_m, min_rays)
-        T, ev, steps = self._lm_stage(block_map, px, z, T, ids, c.gn_stop_step_m, c.min_valid_rays)
-        return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, coarse_steps + steps)
+            T, ev, coarse_steps, _ = self._lm_stage(block_map, subset, z[:n], T, ids, c.coarse_stop_step_m, min_rays)
+        T, ev, steps, H = self._lm_stage(block_map, px, z, T, ids, c.gn_stop_step_m, c.min_valid_rays)
+        cov = None if H is None else pose_covariance(H, ev.cost, ev.n_valid_rays)
+        return TrackingResult(T, ev.cost, ev.depth_residual_m, ev.n_valid_rays, coarse_steps + steps, cov)
 
     def _lm_stage(
         self,
@@ -147,13 +155,15 @@ class Tracker:
         ids: list[int],
         stop_step_m: float,
         min_valid_rays: int,
-    ) -> tuple[np.ndarray, PoseEvaluation, int]:
+    ) -> tuple[np.ndarray, PoseEvaluation, int, np.ndarray | None]:
         """At most ``iterations`` Levenberg-Marquardt steps from ``T`` on the pixels ``px`` with sample
-        depths ``z``, until a step moves less than ``stop_step_m``: the pose, its evaluation, the steps."""
+        depths ``z``, until a step moves less than ``stop_step_m``: the pose, its evaluation, the steps
+        and the Gauss-Newton matrix last built (at the pose, or at the one before the last accepted step
+        when that step was below ``stop_step_m``; None with too few valid rays)."""
         c = self.cfg
         ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids, c.observed_only)
         if ev.n_valid_rays < min_valid_rays:
-            return T, ev, 0
+            return T, ev, 0, None
         H, g = normal_equations(ev, block_map, ids, self.gradients)
         damping = c.gn_damping
         steps = 0
@@ -175,4 +185,4 @@ class Tracker:
                 break
             if accepted and steps < c.iterations:
                 H, g = normal_equations(ev, block_map, ids, self.gradients)
-        return T, ev, steps
+        return T, ev, steps, H

@@ -5,6 +5,9 @@ Sequences:
 - ``tum``: the 300 TUM fr1_xyz frames in ``../shared/data/tum_fr1_xyz_300`` (``NEB_SLAM_SHARED_DATA``
   overrides the folder's parent), config ``tum``. Figures: ATE RMSE, seconds per frame (engine,
   tracking, mapping).
+- ``desk``: the complete TUM fr1_desk sequence (573 associated frames, the paper's benchmark), expected
+  in ``.cache/datasets/rgbd_dataset_freiburg1_desk`` (too large for the shared folder; see the data
+  README there for how to fetch it), config ``tum``; the same figures.
 - ``large``: the ``large`` synthetic preset (six rooms, 320x240, 600 frames, no noise; generated once
   under ``.cache/scenes/``), config ``synthetic``. Figures: ATE RMSE, accuracy, completion, completion
   ratio (5 cm) against the scene's mesh, blocks and parameter MB (checked against blocks x per-block
@@ -46,7 +49,9 @@ from neb_slam_core.synth.generate import generate
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("NEB_SLAM_SHARED_DATA", REPO.parent / "shared" / "data"))
-SEQUENCES = {"tum": "tum", "large": "synthetic", "small": "synthetic"}
+SEQUENCES = {"tum": "tum", "desk": "tum", "large": "synthetic", "small": "synthetic"}
+#: where the complete fr1_desk sequence is kept (git-ignored)
+DESK = REPO / ".cache" / "datasets" / "rgbd_dataset_freiburg1_desk"
 #: points sampled per mesh for the reconstruction metrics, where the protocol's 200,000 is too coarse
 RECON_POINTS = {"large": 1_000_000}
 
@@ -57,6 +62,10 @@ def source_of(sequence: str) -> Path:
         if not (path / "rgb.txt").is_file():
             sys.exit(f"TUM data not found at {path} (set NEB_SLAM_SHARED_DATA to the folder holding tum_fr1_xyz_300)")
         return path
+    if sequence == "desk":
+        if not (DESK / "rgb.txt").is_file():
+            sys.exit(f"TUM fr1_desk not found at {DESK}: fetch it as ../shared/data/README.md describes")
+        return DESK
     return generate(sequence, REPO / ".cache" / "scenes" / sequence, progress=True)
 
 

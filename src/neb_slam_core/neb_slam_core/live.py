@@ -115,7 +115,7 @@ class LiveSlam:
         torch.manual_seed(cfg.seed)
         mapper_map = new_block_map(cfg) if block_map is None else block_map
         self._track_map = copy.deepcopy(mapper_map)
-        self.frontend = Frontend(cfg, self._track_map, T_world_first)
+        self.frontend = Frontend(cfg, self._track_map, T_world_first, own_map=True)
         self.backend = Backend(cfg, mapper_map)
         self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled else None
         # the loop thread adds keyframes to the closer's database while a lost tracker queries it

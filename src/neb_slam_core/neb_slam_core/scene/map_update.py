@@ -3,7 +3,8 @@
 The mapper sends it (ROS topic ``map_update``, std_msgs/UInt8MultiArray) to trackers that hold a copy of
 the map: the hash tables and observed-space records of the blocks it changed, all decoder parameters,
 and the current poses of all keyframes (mapping refines them). Applying every update in order reproduces
-the mapper's map exactly (float32 tables and decoders, float64 poses: no rounding on the way).
+the mapper's map exactly (float32 tables and decoders, float64 poses: no rounding on the way); a
+receiver's observed-space record becomes the union of its own and the mapper's.
 
 Binary layout, version 2, little-endian, no padding::
 
@@ -182,8 +183,9 @@ def decode(data) -> MapUpdate:
 
 
 def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:
-    """Write the update's blocks (creating new ones) and decoders into ``block_map``; returns the ids of
-    the blocks it created. Keyframe poses are the caller's (they belong to its pose bookkeeping)."""
+    """Write the update's blocks (creating new ones) and decoders into ``block_map``, and add the blocks'
+    observed-space records to its own; returns the ids of the blocks it created. Keyframe poses are the
+    caller's (they belong to its pose bookkeeping)."""
     n_decoder = sum(p.numel() for p in block_map.decoders.parameters())
     if update.decoders.size != n_decoder:
         raise MapUpdateError(
@@ -221,7 +223,8 @@ def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:
                     f"record, this map's blocks have {n} voxels (different block.observed_voxel_m?)"
                 )
             bits = np.unpackbits(state.observed, count=n, bitorder="little").astype(bool)
-            block.observed.copy_(torch.from_numpy(bits).view_as(block.observed))
+            # a union: a tracker records its newest keyframes itself before the mapper has them
+            block.observed |= torch.from_numpy(bits).view_as(block.observed)
     with torch.no_grad():
         vec = torch.from_numpy(update.decoders.copy()).to(block_map.device)
         torch.nn.utils.vector_to_parameters(vec, block_map.decoders.parameters())

@@ -5,9 +5,9 @@ Sequences:
 - ``tum``: the 300 TUM fr1_xyz frames in ``../shared/data/tum_fr1_xyz_300`` (``NEB_SLAM_SHARED_DATA``
   overrides the folder's parent), config ``tum``. Figures: ATE RMSE, seconds per frame (engine,
   tracking, mapping).
-- ``desk``: the complete TUM fr1_desk sequence (573 associated frames, the paper's benchmark), expected
-  in ``.cache/datasets/rgbd_dataset_freiburg1_desk`` (too large for the shared folder; see the data
-  README there for how to fetch it), config ``tum``; the same figures.
+- ``desk``: the complete TUM fr1_desk sequence (573 associated frames, the paper's benchmark), the TUM
+  RGB-D benchmark's ``rgbd_dataset_freiburg1_desk`` folder unpacked into ``.cache/datasets/`` (git-ignored),
+  config ``tum``; the same figures.
 - ``large``: the ``large`` synthetic preset (six rooms, 320x240, 600 frames, no noise; generated once
   under ``.cache/scenes/``), config ``synthetic``. Figures: ATE RMSE, accuracy, completion, completion
   ratio (5 cm) against the scene's mesh, blocks and parameter MB (checked against blocks x per-block
@@ -64,7 +64,7 @@ def source_of(sequence: str) -> Path:
         return path
     if sequence == "desk":
         if not (DESK / "rgb.txt").is_file():
-            sys.exit(f"TUM fr1_desk not found at {DESK}: fetch it as ../shared/data/README.md describes")
+            sys.exit(f"TUM fr1_desk not found at {DESK}: unpack the TUM sequence rgbd_dataset_freiburg1_desk there")
         return DESK
     return generate(sequence, REPO / ".cache" / "scenes" / sequence, progress=True)
 

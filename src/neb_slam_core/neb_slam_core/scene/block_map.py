@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..config import BlockConfig, DecoderConfig, OneBlobConfig
+from ..geometry.rays import backproject_depth
 from ..types import Intrinsics
 from .block import NeuralBlock
 from .decoders import Decoders
@@ -276,9 +277,7 @@ class BlockMap(nn.Module):
             return set()
         T = np.asarray(T_world_cam, dtype=np.float64)
         k = intrinsics
-        v, u = np.nonzero(valid)
-        z = depth[v, u].astype(np.float64) + truncation_m
-        surface = np.stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z], axis=1) @ T[:3, :3].T + T[:3, 3]
+        surface = backproject_depth(np.where(valid, depth + truncation_m, 0.0), k, T)  # the band's far side
         lo = np.minimum(surface.min(axis=0), T[:3, 3])
         hi = np.maximum(surface.max(axis=0), T[:3, 3])
         dev = self.device

@@ -13,14 +13,16 @@ CONFIG ?= synthetic
 
 venv: $(STAMP)
 
-# Re-run only when the pinned requirements, the core's packaging or its C++ kernels change (fast no-op
-# otherwise): installing builds the kernels.
+# Re-run only when the pinned requirements, the core's packaging, its C++ kernels or the interface
+# packages change (fast no-op otherwise): installing builds the kernels and the interfaces the wheels lack.
 $(STAMP): requirements.txt src/neb_slam_core/setup.cfg src/neb_slam_core/setup.py \
-		$(wildcard src/neb_slam_core/neb_slam_core/scene/csrc/*) src/neb_slam_core/neb_slam_core/scene/_ext.py
+		$(wildcard src/neb_slam_core/neb_slam_core/scene/csrc/*) src/neb_slam_core/neb_slam_core/scene/_ext.py \
+		$(wildcard interfaces/*/*.* interfaces/*/msg/*) tools/build_interfaces.py
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade "pip>=24"
 	$(PY) -m pip install --quiet -r requirements.txt
 	$(PY) -m pip install --quiet --no-build-isolation --no-deps -e src/neb_slam_core
+	$(PY) tools/build_interfaces.py
 	@touch $(STAMP)
 
 test: venv

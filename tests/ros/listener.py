@@ -1,7 +1,7 @@
 """An independent subscriber process (what another robot's stack would be): it records what the suite
 publishes on pose, path, blocks and mesh (the markers it holds, each message updating the blocks it names),
-odometry (each pose covariance's diagonal) and /diagnostics (the tracking statuses), and on SIGINT writes
-a JSON summary to the path given as argv[1]."""
+odometry (each pose covariance's diagonal), /diagnostics (the tracking statuses), /tf and /tf_static (every
+transform), and on SIGINT writes a JSON summary to the path given as argv[1]."""
 
 import json
 import sys
@@ -12,10 +12,14 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 seen = {
     "pose_stamps_ns": [],
+    "poses": [],  # [stamp, frame_id, x, y, z, qx, qy, qz, qw]
+    "tf": [],  # [stamp, parent, child, x, y, z, qx, qy, qz, qw]
+    "tf_static": [],
     "path_lengths": [],
     "path_stamps_ns": [],
     "block_ids": [],
@@ -35,11 +39,27 @@ def main() -> None:
     node = rclpy.create_node("listener", namespace="neb_slam")
     state = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     stream = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    node.create_subscription(PoseStamped, "pose", lambda m: seen["pose_stamps_ns"].append(stamp(m)), stream)
+
+    def on_pose(m):
+        seen["pose_stamps_ns"].append(stamp(m))
+        p, q = m.pose.position, m.pose.orientation
+        seen["poses"].append([stamp(m), m.header.frame_id, p.x, p.y, p.z, q.x, q.y, q.z, q.w])
+
+    def on_tf(key, m):
+        for t in m.transforms:
+            v, q = t.transform.translation, t.transform.rotation
+            seen[key].append([stamp(t), t.header.frame_id, t.child_frame_id, v.x, v.y, v.z, q.x, q.y, q.z, q.w])
+
+    node.create_subscription(PoseStamped, "pose", on_pose, stream)
+    node.create_subscription(TFMessage, "/tf", lambda m: on_tf("tf", m), stream)
+    node.create_subscription(TFMessage, "/tf_static", lambda m: on_tf("tf_static", m), state)
 
     def on_path(m):
         seen["path_lengths"].append(len(m.poses))
         seen["path_stamps_ns"] = [stamp(p) for p in m.poses]
+        if m.poses:
+            q, o = m.poses[0].pose.position, m.poses[0].pose.orientation
+            seen["path_first"] = [q.x, q.y, q.z, o.x, o.y, o.z, o.w]  # the first frame's pose
 
     node.create_subscription(Path, "path", on_path, state)
 

@@ -140,6 +140,36 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
     for s, diag in odometry.items():
         assert diag == [0.0] * 6 if s == stamps[0] else all(0 < v < 1e-2 * UNKNOWN_VARIANCE for v in diag), diag
     assert seen["diagnostics"] and seen["diagnostics"][-1][:2] == [0, "tracking"], seen["diagnostics"]
+    _check_tf(seen, frames)
+
+
+def _check_tf(seen: dict, frames) -> None:
+    """REP-105 on /tf: for every published pose, map -> odom -> base_link at its stamp composed with the
+    static base_link -> camera equals it; the map is level: its z axis is the scene's up (the synthetic
+    scenes are z-up) within 2 degrees (the suite takes gravity from the first frame's floor)."""
+    from neb_slam_core.geometry.se3 import pose_from_tum
+
+    def pose(row) -> np.ndarray:
+        return pose_from_tum(np.array(row[-7:], dtype=np.float64))
+
+    assert len(seen["tf_static"]) == 1, seen["tf_static"]
+    _, base, camera, *_ = seen["tf_static"][0]
+    assert (base, camera) == ("base_link", "camera"), seen["tf_static"]  # camera: the images' frame_id
+    T_base_cam = pose(seen["tf_static"][0])
+    tf = {(row[0], row[1], row[2]): pose(row) for row in seen["tf"]}
+    assert {(parent, child) for _, parent, child in tf} == {("map", "odom"), ("odom", "base_link")}
+    assert seen["poses"] and all(row[1] == "map" for row in seen["poses"])
+    for row in seen["poses"]:
+        s = row[0]
+        composed = tf[(s, "map", "odom")] @ tf[(s, "odom", "base_link")] @ T_base_cam
+        np.testing.assert_allclose(composed, pose(row), atol=1e-6)
+    # the first frame's pose in map against its ground truth in the scene: up in the first camera's frame
+    first = {row[0]: pose(row) for row in seen["poses"]}.get(frames[0].stamp_ns)
+    if first is None:  # the volatile pose topic may miss the first frame; the path holds it
+        first = pose(["", *seen["path_first"]])
+    up_map = first[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    up_scene = frames[0].T_world_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    assert np.degrees(np.arccos(np.clip(up_map @ up_scene, -1.0, 1.0))) < 2.0, (up_map, up_scene)
 
 
 def test_separate_processes_replay_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):

@@ -99,6 +99,7 @@ class CameraInput:
         self._camera = None
         self._held: list = []  # frames that came before any camera info
         self.n_accepted = 0
+        self.frame_id = ""  # the colour images' header.frame_id (the camera's optical frame)
         self._told_nan = False
         self._ground_truth: dict[int, np.ndarray] = {}
         cam = qos.camera(opt.reliable_inputs)
@@ -214,6 +215,7 @@ class CameraInput:
                     f"{frame.stamp_ns}: read as invalid (REP 118), here and from now on"
                 )
             self.n_accepted += 1
+            self.frame_id = pair.rgb.header.frame_id
             self._enqueue(frame)
 
     def _on_ground_truth(self, msg: PoseStamped) -> None:

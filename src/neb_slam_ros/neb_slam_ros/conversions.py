@@ -234,13 +234,20 @@ def path_msg(stamps_ns, poses, frame_id: str, stamp_ns: int | None = None) -> Pa
     return msg
 
 
-def block_markers(centres: np.ndarray, edge_m: float, ns: int, frame_id: str) -> MarkerArray:
-    """One translucent CUBE per block: id = block id, pose = centre, scale = edge."""
+def block_markers(
+    centres: np.ndarray, edge_m: float, ns: int, frame_id: str, rotation: np.ndarray | None = None
+) -> MarkerArray:
+    """One translucent CUBE per block: id = block id, pose = centre, scale = edge; ``rotation`` (3x3) turns
+    the cubes (blocks are axis-aligned in the engine's world frame, which ``frame_id`` may be turned to)."""
+    T = np.eye(4)
+    if rotation is not None:
+        T[:3, :3] = rotation
+    _, _, _, qx, qy, qz, qw = (float(v) for v in pose_to_tum(T))
     out = MarkerArray()
     for i, c in enumerate(np.asarray(centres, dtype=np.float64).reshape(-1, 3)):
         m = Marker(header=header(ns, frame_id), ns="neb_blocks", id=i, type=Marker.CUBE, action=Marker.ADD)
         m.pose.position = Point(x=float(c[0]), y=float(c[1]), z=float(c[2]))
-        m.pose.orientation.w = 1.0
+        m.pose.orientation = Quaternion(x=qx, y=qy, z=qz, w=qw)
         m.scale = Vector3(x=edge_m, y=edge_m, z=edge_m)
         m.color = ColorRGBA(r=0.2, g=0.6, b=1.0, a=0.15)
         out.markers.append(m)

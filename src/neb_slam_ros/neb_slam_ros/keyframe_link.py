@@ -5,10 +5,13 @@ exact), ``keyframe/camera_info`` (the rectified camera: no distortion), ``keyfra
 and ``keyframe/meta`` (std_msgs/String, JSON) with what the standard messages cannot carry:
 
     {"stamp_ns": int, "frame_index": int, "keyframe_id": int, "map_now": bool, "first": bool,
-     "T_world_cam": [16 floats, row-major, exact], "block_centres": [[x, y, z], ...]}
+     "T_world_cam": [16 floats, row-major, exact], "block_centres": [[x, y, z], ...],
+     "T_map_world": [16 floats] (the first keyframe only)}
 
 ``block_centres`` lists every block the tracker has allocated so far (ids are positions), so a mapper
 creates the same blocks before it integrates the keyframe, whatever order the topics arrive in.
+``T_map_world`` is the engine world's pose in the tracker's level ``map_frame`` (:mod:`neb_slam_ros.frames`),
+fixed at the first frame: the mapper publishes its mesh in that frame too.
 """
 
 from __future__ import annotations
@@ -30,8 +33,12 @@ class KeyframeMeta:
     first: bool
     T_world_cam: np.ndarray
     block_centres: np.ndarray
+    T_map_world: np.ndarray | None = None
 
     def to_json(self) -> str:
+        extra = {}
+        if self.T_map_world is not None:
+            extra["T_map_world"] = [float(v) for v in np.asarray(self.T_map_world).reshape(-1)]
         return json.dumps(
             {
                 "stamp_ns": self.stamp_ns,
@@ -41,6 +48,7 @@ class KeyframeMeta:
                 "first": self.first,
                 "T_world_cam": [float(v) for v in np.asarray(self.T_world_cam).reshape(-1)],
                 "block_centres": np.asarray(self.block_centres, dtype=np.float64).reshape(-1, 3).tolist(),
+                **extra,
             }
         )
 
@@ -54,6 +62,7 @@ class KeyframeMeta:
         try:
             T = np.array(d["T_world_cam"], dtype=np.float64).reshape(4, 4)
             centres = np.array(d["block_centres"], dtype=np.float64).reshape(-1, 3)
+            T_map_world = np.array(d["T_map_world"], dtype=np.float64).reshape(4, 4) if "T_map_world" in d else None
             return cls(
                 int(d["stamp_ns"]),
                 int(d["frame_index"]),
@@ -62,6 +71,7 @@ class KeyframeMeta:
                 bool(d["first"]),
                 T,
                 centres,
+                T_map_world,
             )
         except KeyError as exc:
             raise ValueError(f"field {exc.args[0]!r} is missing") from None

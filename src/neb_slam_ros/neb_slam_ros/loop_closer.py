@@ -33,6 +33,7 @@ from std_msgs.msg import UInt8MultiArray
 from neb_slam_core.loop.closer import LoopCloser
 from neb_slam_ros import conversions, qos
 from neb_slam_ros._node_main import run_node
+from neb_slam_ros.frames import WORLD_FRAME
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
 from neb_slam_ros.node import NebNode
 from neb_slam_ros.params import require
@@ -42,9 +43,9 @@ from neb_slam_ros.params import require
 class LoopCloserOptions:
     """The loop closer's own parameters (loop detection and correction come from the config's ``loop``)."""
 
-    frame_id: str = "map"
+    frame_id: str = WORLD_FRAME
 
-    PARAMETER_DOCS = {"frame_id": "frame of the published corrected poses"}
+    PARAMETER_DOCS = {"frame_id": "frame of the published corrected poses (the engine's world frame)"}
 
     def check(self) -> None:
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)

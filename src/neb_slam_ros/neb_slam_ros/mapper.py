@@ -37,6 +37,7 @@ import torch
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import UInt8MultiArray
 
+from neb_slam_core.geometry.se3 import invert
 from neb_slam_core.io.run_dir import MAP_FILE, TRAJECTORY_FILE, RunDirectory
 from neb_slam_core.io.trajectory import Trajectory
 from neb_slam_core.loop.correction import merge_correction
@@ -64,7 +65,8 @@ class MapperOptions:
         "output_dir": "where save_mesh, save_map and the shutdown write; empty: runs/mapper-<date>-<time>",
         "map_file": "a map checkpoint (map.pt) to continue; empty: start from an empty map",
         "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
-        "frame_id": "frame of the published mesh",
+        "frame_id": "frame of the published mesh: the tracker's map_frame (its keyframes say how the engine's "
+        "world sits in it)",
     }
 
     def check(self) -> None:
@@ -85,7 +87,8 @@ class MapperNode(NebNode):
         self._rng = np.random.default_rng(self.cfg.seed)
         self._version = 0
         self._unsent_blocks: set[int] = set()
-        self._path: tuple[np.ndarray, np.ndarray] | None = None
+        self._path: tuple[np.ndarray, np.ndarray] | None = None  # the tracker's path, in frame_id
+        self._T_map_world = np.eye(4)  # the engine's world in frame_id, from the keyframes
         self._loops: list[tuple[int, np.ndarray, np.ndarray]] = []  # corrections not applied yet
         self._loop_stamp = -1  # header stamp of the newest correction handled (map_update's loop_stamp_ns)
         self._n_loops = 0
@@ -179,6 +182,10 @@ class MapperNode(NebNode):
         for centre in meta.block_centres[len(self.block_map) :]:
             block = self.block_map.add_block(torch.as_tensor(centre, dtype=torch.float32))
             self._unsent_blocks.add(block.block_id)
+        if meta.T_map_world is not None and not np.array_equal(meta.T_map_world, self._T_map_world):
+            with self.cond:
+                self._T_map_world = meta.T_map_world
+            self.map_outputs.align(meta.T_map_world)
         frame = KeyframeSubscriber.frame(parts)
         step = self.backend.add_keyframe(frame, meta.T_world_cam, meta.frame_index, meta.map_now, meta.first)
         if step.keyframe.keyframe_id != meta.keyframe_id:
@@ -259,10 +266,10 @@ class MapperNode(NebNode):
         kf_stamps = np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64)
         kf_poses = kfs.poses() if len(kfs) else np.zeros((0, 4, 4))
         with self.cond:
-            path = self._path
+            path, T_map_world = self._path, self._T_map_world
         if path is None:
             return Trajectory(kf_stamps, kf_poses)
-        return corrected_trajectory(path[0], path[1], kf_stamps, kf_poses)
+        return corrected_trajectory(path[0], invert(T_map_world) @ path[1], kf_stamps, kf_poses)
 
     # ------------------------------------------------------------------ shutdown
 

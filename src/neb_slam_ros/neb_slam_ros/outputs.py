@@ -1,7 +1,7 @@
 """What the nodes publish for other stacks, defined once for every node that publishes it.
 
-- :class:`PoseOutputs`: ``pose``, ``odometry``, ``path`` (:class:`PathOutput`) and ``blocks`` of the tracking
-  side (the ``tracker`` and the one-process ``slam``).
+- :class:`PoseOutputs`: ``pose``, ``odometry``, ``/tf``, ``path`` (:class:`PathOutput`) and ``blocks`` of the
+  tracking side (the ``tracker`` and the one-process ``slam``).
 - :class:`MapOutputs`: ``mesh`` and the ``save_mesh`` / ``save_map`` services of the mapping side (the
   ``mapper`` and ``slam``), run in the node's worker thread (the map's owner).
 - :class:`HealthOutput`: the tracking state and the node's counters on ``/diagnostics``.
@@ -31,12 +31,13 @@ from neb_slam_core.io.run_dir import RunDirectory
 from neb_slam_core.io.trajectory import Trajectory
 from neb_slam_core.types import StepResult
 from neb_slam_ros import cdr, conversions, qos
+from neb_slam_ros.frames import FrameOptions, TfOutput
 
 #: at shutdown, how long a published mesh or path may wait for every subscriber's acknowledgement (the
 #: process ends right after; a reliable message not yet received would be lost with it)
 FINAL_MESH_ACK_S = 5.0
 
-#: the camera frame named in odometry's child_frame_id
+#: the frame id of the keyframe images the tracker hands to the mapper (the engine's camera)
 CAMERA_FRAME = "camera"
 
 #: with ``path_period_s`` 0 (a path after every frame), how often a change held back while nobody
@@ -134,43 +135,67 @@ class PathOutput:
 
 
 class PoseOutputs:
-    """``pose`` and ``odometry`` per frame, ``path`` and ``blocks`` (transient local) of ``node``.
+    """``pose``, ``odometry``, ``/tf`` per frame, ``path`` and ``blocks`` (transient local) of ``node``, all in
+    the level ``map_frame`` (:mod:`neb_slam_ros.frames`).
 
-    ``trajectory``: every processed frame's current pose (read when ``path`` is published);
-    ``path_period_s``: see :class:`PathOutput`.
+    The engine's poses are in its world frame; :meth:`align` sets ``T_map_world`` at the first frame and
+    every output goes through it. ``trajectory``: every processed frame's current pose in the world frame
+    (read when ``path`` is published); ``pose_of``: processed frame ``i``'s current pose (the previous
+    frame's, for the motion ``odom -> base`` adds); ``path_period_s``: see :class:`PathOutput`.
     """
 
     def __init__(
         self,
         node,
-        frame_id: str,
+        frames: FrameOptions,
         block_edge_m: float,
         trajectory: Callable[[], Trajectory],
+        pose_of: Callable[[int], np.ndarray],
         path_period_s: float,
     ):
-        self.frame_id = frame_id
+        self.frame_id = frames.map_frame
         self.block_edge_m = block_edge_m
+        self.T_map_world = np.eye(4)
+        self._pose_of = pose_of
         self.pub_pose = node.create_publisher(PoseStamped, "pose", qos.stream())
         self.pub_odom = node.create_publisher(Odometry, "odometry", qos.stream())
         self.pub_path = node.create_publisher(PathMsg, "path", qos.state())
         self.pub_blocks = node.create_publisher(MarkerArray, "blocks", qos.state())
-        self.path = PathOutput(node, self.pub_path, frame_id, path_period_s, trajectory)
+        self.tf = TfOutput(node, frames)
+        self.path = PathOutput(node, self.pub_path, self.frame_id, path_period_s, lambda: self.in_map(trajectory()))
         self._prev: tuple[np.ndarray, int] | None = None
 
-    def publish_blocks(self, centres: np.ndarray, stamp_ns: int) -> None:
-        self.pub_blocks.publish(conversions.block_markers(centres, self.block_edge_m, stamp_ns, self.frame_id))
+    def align(self, T_map_world: np.ndarray) -> None:
+        """Set the world frame's pose in ``map`` (before the first frame is published)."""
+        self.T_map_world = np.asarray(T_map_world, dtype=np.float64)
 
-    def publish_frame(self, r: StepResult) -> None:
-        """``odometry`` (twist from the previous frame) and ``pose`` of a processed frame. The pose goes
-        last: lockstep replay publishes the next frame (or ends the process) when it arrives."""
-        prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
-        self.pub_odom.publish(
-            conversions.odometry_msg(
-                r.T_world_cam, r.stamp_ns, prev_T, prev_ns, self.frame_id, CAMERA_FRAME, r.covariance
-            )
+    def in_map(self, tr: Trajectory) -> Trajectory:
+        return Trajectory(tr.stamps_ns, self.T_map_world @ tr.poses if len(tr.poses) else tr.poses)
+
+    def publish_blocks(self, centres: np.ndarray, stamp_ns: int) -> None:
+        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+        R, t = self.T_map_world[:3, :3], self.T_map_world[:3, 3]
+        self.pub_blocks.publish(
+            conversions.block_markers(centres @ R.T + t, self.block_edge_m, stamp_ns, self.frame_id, R)
         )
-        self._prev = (r.T_world_cam, r.stamp_ns)
-        self.pub_pose.publish(conversions.pose_msg(r.T_world_cam, r.stamp_ns, self.frame_id))
+
+    def publish_frame(self, r: StepResult, camera_frame: str = "") -> None:
+        """``/tf``, ``odometry`` (twist from the previous frame) and ``pose`` of a processed frame;
+        ``camera_frame``: the image's frame id. The pose goes last: lockstep replay publishes the next
+        frame (or ends the process) when it arrives."""
+        T = self.T_map_world @ r.T_world_cam
+        prev = self.T_map_world @ self._pose_of(r.frame_index - 1) if r.frame_index > 0 else None
+        self.tf.frame(T, prev, r.stamp_ns, camera_frame)
+        prev_T, prev_ns = self._prev if self._prev is not None else (None, None)
+        cov = r.covariance
+        if cov is not None:
+            R6 = np.kron(np.eye(2), self.T_map_world[:3, :3])  # translation and rotation vector alike
+            cov = R6 @ cov @ R6.T
+        self.pub_odom.publish(
+            conversions.odometry_msg(T, r.stamp_ns, prev_T, prev_ns, self.frame_id, self.tf.camera_frame, cov)
+        )
+        self._prev = (T, r.stamp_ns)
+        self.pub_pose.publish(conversions.pose_msg(T, r.stamp_ns, self.frame_id))
 
 
 class HealthOutput:
@@ -283,6 +308,7 @@ class MapOutputs:
         self._observed_points = observed_points
         self._write_map = write_map
         self._block_revisions = block_revisions
+        self.T_map_world = np.eye(4)  # the engine's world in frame_id (:meth:`align`)
         self._markers: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # block id -> (points, colors) published
         self._extracted: dict[int, int] = {}  # block id -> its revision when last extracted
         self._subscribers = 0  # subscription count at the last publication
@@ -296,6 +322,16 @@ class MapOutputs:
         node.worker_service("save_map", self.save_map)
         if mesh_period_s > 0:
             node.worker_timer(mesh_period_s, self.publish_current_mesh, "publish_mesh")
+
+    def align(self, T_map_world: np.ndarray) -> None:
+        """Publish from now on in ``frame_id`` = the engine's world moved by ``T_map_world``; markers
+        already sent are sent again in it (files keep the world frame)."""
+        T = np.asarray(T_map_world, dtype=np.float64)
+        if np.array_equal(T, self.T_map_world):
+            return
+        self.T_map_world = T
+        self._markers.clear()
+        self._extracted.clear()
 
     def run_dir(self) -> RunDirectory:
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -332,8 +368,10 @@ class MapOutputs:
         """Take mesh ``parts`` (block id -> vertices, faces, colours; empty for a block without triangles) as
         the blocks' markers; returns the markers to send for them (None: DELETE a marker sent before)."""
         out: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
+        R, t = self.T_map_world[:3, :3], self.T_map_world[:3, 3]
         for b, (verts, faces, colours) in parts.items():
             if len(faces):
+                verts = np.asarray(verts, dtype=np.float64) @ R.T + t
                 out[b] = self._markers[b] = conversions.triangle_list(verts, faces, colours)
             elif self._markers.pop(b, None) is not None:
                 out[b] = None

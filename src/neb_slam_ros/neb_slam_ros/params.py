@@ -12,12 +12,15 @@ one parameter per leaf of :class:`~neb_slam_core.config.SlamConfig`, named by it
 
 Values the user set are applied over the preset and the result is validated by the core
 (:func:`neb_slam_core.config_io.load_config`), so a bad value fails at start with the parameter's name.
+The nodes read their parameters once, at start: every one is declared read-only, so ``ros2 param set``
+is refused ("parameter is read-only") instead of appearing to succeed.
 Node options that are not engine configuration (topics, rates, folders) are small frozen dataclasses
 declared the same way by :func:`declare_options`.
 """
 
 from __future__ import annotations
 
+import array
 import dataclasses
 from typing import Any, TypeVar
 
@@ -57,7 +60,8 @@ def declare_config(node: Node, default_preset: str = "base") -> SlamConfig:
         default_preset,
         ParameterDescriptor(
             description="engine config: a preset (base, tum, scannet, replica, synthetic, small, "
-            "ci) or a YAML file; the parameters below override it"
+            "ci) or a YAML file; the parameters below override it",
+            read_only=True,
         ),
     ).value
     try:
@@ -72,7 +76,9 @@ def declare_config(node: Node, default_preset: str = "base") -> SlamConfig:
             name,
             default,
             ParameterDescriptor(
-                dynamic_typing=True, description=f"engine config {name} (see neb_slam_core configs/base.yaml)"
+                dynamic_typing=True,
+                description=f"engine config {name} (see neb_slam_core configs/base.yaml)",
+                read_only=True,
             ),
         ).value
         if value != default:
@@ -90,11 +96,15 @@ def declare_options(node: Node, cls: type[T]) -> T:
     values = {}
     for f in dataclasses.fields(cls):
         default = f.default
-        descriptor = ParameterDescriptor(description=docs.get(f.name, ""), dynamic_typing=True)
+        descriptor = ParameterDescriptor(description=docs.get(f.name, ""), dynamic_typing=True, read_only=True)
         value = node.declare_parameter(f.name, default, descriptor).value
         kind = type(default)
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
+        if kind is tuple and isinstance(value, (list, tuple, array.array)):  # a number list: float64 values
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+                raise ParameterError(f.name, f"expected numbers, got {list(value)!r}")
+            value = tuple(float(v) for v in value)
         if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
             raise ParameterError(f.name, f"expected a {kind.__name__}, got {value!r}")
         values[f.name] = value

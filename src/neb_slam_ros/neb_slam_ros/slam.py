@@ -37,6 +37,7 @@ from neb_slam_core.slam import Slam
 from neb_slam_core.types import RgbdFrame
 from neb_slam_ros._node_main import run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
+from neb_slam_ros.frames import FrameOptions, map_alignment
 from neb_slam_ros.node import NebNode
 from neb_slam_ros.outputs import FINAL_MESH_ACK_S, HealthOutput, MapOutputs, PoseOutputs, block_centres
 from neb_slam_ros.params import declare_options, map_parameter, require
@@ -49,7 +50,6 @@ class SlamOptions:
     output_dir: str = ""
     mesh_period_s: float = 30.0
     path_period_s: float = 1.0
-    frame_id: str = "map"
     initial_pose_timeout_s: float = 10.0
     bag: str = ""
     map_file: str = ""
@@ -67,7 +67,6 @@ class SlamOptions:
         "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
         "path_period_s": "publish the path at most this often, and at once after a loop correction (0: after "
         "every frame)",
-        "frame_id": "frame of the published poses and mesh",
         "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
         "bag": "also replay this bag in the process (bag_replay's parameters apply); the process ends with it",
     }
@@ -75,7 +74,6 @@ class SlamOptions:
     def check(self) -> None:
         require(self.mesh_period_s >= 0, "mesh_period_s", ">= 0", self.mesh_period_s)
         require(self.path_period_s >= 0, "path_period_s", ">= 0", self.path_period_s)
-        require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
         require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
 
 
@@ -85,6 +83,7 @@ class SlamNode(NebNode):
     def __init__(self) -> None:
         super().__init__("slam", SlamOptions)
         self.input_opt = declare_options(self, InputOptions)
+        self.frame_opt = declare_options(self, FrameOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/slam-%Y%m%d-%H%M%S"))
         self._map = map_parameter(self.cfg, self.opt.map_file)  # checked at start, used at the first frame
         self.live = self.opt.live and not (self.opt.bag and self.opt.lockstep)
@@ -95,12 +94,17 @@ class SlamNode(NebNode):
         self.input = CameraInput(self, self.input_opt, self.cond)
         self._loops_applied = 0
         self.poses = PoseOutputs(
-            self, self.opt.frame_id, self.cfg.block.edge_m, lambda: self.slam.trajectory(), self.opt.path_period_s
+            self,
+            self.frame_opt,
+            self.cfg.block.edge_m,
+            lambda: self.slam.trajectory(),
+            lambda i: self.slam.pose_of(i),
+            self.opt.path_period_s,
         )
         self.health = HealthOutput(self, self.input, self._health_values)
         self.map_outputs = MapOutputs(
             self,
-            self.opt.frame_id,
+            self.frame_opt.map_frame,
             self.cfg.mesh,
             self.out,
             self.opt.mesh_period_s,
@@ -162,6 +166,10 @@ class SlamNode(NebNode):
         self.run_log.begin(frame)
         r = self.slam.process(frame)
         self.run_log.end(r)
+        if r.frame_index == 0:
+            T_map_world = map_alignment(self.frame_opt, r.T_world_cam, frame, self.get_logger().warning)
+            self.poses.align(T_map_world)
+            self.map_outputs.align(T_map_world)
         self._t_last = time.perf_counter()
         # a loop correction applied in this step goes out at once (the live engine's reach the tracking
         # thread with a later map update, and the path within a period)
@@ -170,7 +178,7 @@ class SlamNode(NebNode):
         self._loops_applied = applied
         if r.new_block_id is not None:
             self.poses.publish_blocks(block_centres(self.slam.block_map), r.stamp_ns)
-        self.poses.publish_frame(r)
+        self.poses.publish_frame(r, self.input.frame_id)
         self.health.frame(r)
         if not r.tracking_ok:
             self.get_logger().warning(

@@ -89,7 +89,8 @@ def launch(
     logs_dir.mkdir(exist_ok=True)
     env = env or _env()
     engine = {"config": config, "seed": seed, **(extra_params or {})}
-    camera = {"reliable_inputs": True, "ground_truth_topic": "ground_truth/pose"}
+    # datasets are recorded with hand-held cameras: the map's up from the first frame's floor
+    camera = {"reliable_inputs": True, "ground_truth_topic": "ground_truth/pose", "gravity": "floor"}
     replay = {"bag": str(bag), "lockstep": not live, "rate": rate if live else 0.0, "count": count, "start": start}
     resume = {} if map_file is None else {"map_file": str(map_file)}
     if one_process:

@@ -40,6 +40,7 @@ from neb_slam_core.types import RgbdFrame
 from neb_slam_ros import conversions, qos
 from neb_slam_ros._node_main import run_node
 from neb_slam_ros.camera_input import CameraInput, InputOptions
+from neb_slam_ros.frames import WORLD_FRAME, FrameOptions, map_alignment
 from neb_slam_ros.keyframe_link import KeyframeMeta
 from neb_slam_ros.node import NebNode
 from neb_slam_ros.outputs import CAMERA_FRAME, HealthOutput, PoseOutputs, block_centres
@@ -55,7 +56,6 @@ class TrackerOptions:
     wait_for_map: bool = False
     map_timeout_s: float = 600.0
     initial_pose_timeout_s: float = 10.0
-    frame_id: str = "map"
     path_period_s: float = 1.0
 
     PARAMETER_DOCS = {
@@ -64,7 +64,6 @@ class TrackerOptions:
         "wait_for_map": "before the first frame, wait for the map of a mapper that continues a map_file",
         "map_timeout_s": "warn when an awaited map update or loop verdict takes longer than this",
         "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
-        "frame_id": "frame of the published poses",
         "path_period_s": "publish the path at most this often, and at once after a loop correction (0: after "
         "every frame)",
     }
@@ -72,7 +71,6 @@ class TrackerOptions:
     def check(self) -> None:
         require(self.map_timeout_s > 0, "map_timeout_s", "> 0", self.map_timeout_s)
         require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
-        require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
         require(self.path_period_s >= 0, "path_period_s", ">= 0", self.path_period_s)
 
 
@@ -82,6 +80,7 @@ class TrackerNode(NebNode):
     def __init__(self) -> None:
         super().__init__("tracker", TrackerOptions, join_timeout_s=60.0)
         self.input_opt = declare_options(self, InputOptions)
+        self.frame_opt = declare_options(self, FrameOptions)
         torch.manual_seed(self.cfg.seed)
         self.block_map = new_block_map(self.cfg)
         self.frontend: Frontend | None = None  # made at the first frame (its pose may come from a topic)
@@ -101,7 +100,12 @@ class TrackerNode(NebNode):
         if self.opt.loop_sync:
             self.create_subscription(Path, "loop_closure", self._on_loop_verdict, qos.events(10))
         self.poses = PoseOutputs(
-            self, self.opt.frame_id, self.cfg.block.edge_m, lambda: self.frontend.trajectory(), self.opt.path_period_s
+            self,
+            self.frame_opt,
+            self.cfg.block.edge_m,
+            lambda: self.frontend.trajectory(),
+            lambda i: self.frontend.pose_of(i),
+            self.opt.path_period_s,
         )
         self.health = HealthOutput(self, self.input, self._health_values)
         self.pub_kf = {
@@ -221,6 +225,8 @@ class TrackerNode(NebNode):
             self.frontend = Frontend(self.cfg, self.block_map, self._first_pose(frame.stamp_ns), own_map=True)
         step = self.frontend.step(frame)
         r = step.result
+        if r.frame_index == 0:
+            self.poses.align(map_alignment(self.frame_opt, r.T_world_cam, step.frame, self.get_logger().warning))
         self.poses.path.changed()
         if r.new_block_id is not None:
             self.poses.publish_blocks(block_centres(self.block_map), r.stamp_ns)
@@ -233,7 +239,7 @@ class TrackerNode(NebNode):
                 self._awaited_ack = r.stamp_ns
             if step.keyframe_id is not None and self.opt.loop_sync:
                 self._awaited_loop = r.stamp_ns
-        self.poses.publish_frame(r)
+        self.poses.publish_frame(r, self.input.frame_id)
         self.health.frame(r)
         if not r.tracking_ok:
             self.get_logger().warning(
@@ -255,12 +261,19 @@ class TrackerNode(NebNode):
         r, f = step.result, step.frame
         ns = r.stamp_ns
         meta = KeyframeMeta(
-            ns, r.frame_index, step.keyframe_id, step.map_now, step.first, r.T_world_cam, block_centres(self.block_map)
+            ns,
+            r.frame_index,
+            step.keyframe_id,
+            step.map_now,
+            step.first,
+            r.T_world_cam,
+            block_centres(self.block_map),
+            self.poses.T_map_world,
         )
         self.pub_kf["rgb"].publish(conversions.rgb_msg(f.rgb, ns, CAMERA_FRAME))
         self.pub_kf["depth"].publish(conversions.depth_msg(f.depth_m, ns, CAMERA_FRAME))
         self.pub_kf["camera_info"].publish(conversions.camera_info_msg(f.intrinsics, None, ns, CAMERA_FRAME))
-        self.pub_kf["pose"].publish(conversions.pose_msg(r.T_world_cam, ns, self.opt.frame_id))
+        self.pub_kf["pose"].publish(conversions.pose_msg(r.T_world_cam, ns, WORLD_FRAME))
         self.pub_kf["meta"].publish(String(data=meta.to_json()))
 
     # ------------------------------------------------------------------ shutdown

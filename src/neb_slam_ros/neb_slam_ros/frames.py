@@ -1,0 +1,175 @@
+"""Frames and TF of the tracking nodes (``tracker``, ``slam``), after REP-103 and REP-105.
+
+The engine works in its world frame: the first frame's camera (optical axes: z forward, y down), or the
+first ground-truth pose's frame. What the nodes publish is in ``map_frame``, a level frame: z up, x along
+the robot's first heading, origin at the first position of ``base_frame``. :func:`map_alignment` fixes
+``T_map_world`` at the first frame, from one of three sources of gravity (``gravity``):
+
+- ``extrinsic``: down is -z of ``base_frame`` at the first frame (``base_to_camera`` says how the camera
+  sits on the base): right for a robot that starts on level ground. ``map`` is then the first base pose.
+- ``floor``: the floor's normal in the first depth image (:func:`~neb_slam_core.geometry.gravity.floor_down`,
+  searched within 45 degrees of the extrinsic's up): right for a hand-held or tilted camera that sees the
+  floor; without a floor in view it falls back to ``extrinsic`` with a warning.
+- ``vector``: ``gravity_vector``, down in the first camera's optical frame (an accelerometer's reading at
+  rest, negated, say).
+
+:class:`TfOutput` publishes, stamped with each frame's image stamp, ``map -> odom -> base`` on ``/tf`` (with
+``odom_frame`` empty: ``map -> base``) and ``base -> camera`` once on ``/tf_static``. The split is rtabmap's:
+``odom -> base`` is continuous (each frame adds the motion tracking measured since the previous frame),
+``map -> odom`` takes the jumps of map optimisation and loop closure. The camera frame is
+``camera_frame``, or the colour image's ``header.frame_id``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from geometry_msgs.msg import Quaternion, Transform, TransformStamped, Vector3
+from tf2_msgs.msg import TFMessage
+
+from neb_slam_core.geometry.gravity import floor_down, level_frame
+from neb_slam_core.geometry.se3 import invert, pose_from_tum, pose_to_tum
+from neb_slam_core.types import RgbdFrame
+from neb_slam_ros import conversions, qos
+from neb_slam_ros.params import require
+
+#: a camera optical frame (z forward, x right, y down) on a base at its origin, looking along the base's
+#: x (x y z qx qy qz qw): REP-103's rotation between a body frame and an optical frame
+OPTICAL_ON_BASE = (0.0, 0.0, 0.0, -0.5, 0.5, -0.5, 0.5)
+
+GRAVITY_SOURCES = ("extrinsic", "floor", "vector")
+
+#: the engine's world frame, named by the topics between the nodes whose poses are the engine's
+#: (``keyframe/pose``, ``loop_closure``); ``T_map_world`` places it in ``map_frame``
+WORLD_FRAME = "neb_slam_world"
+
+
+@dataclass(frozen=True)
+class FrameOptions:
+    """The frame parameters of the tracking nodes (see the module docstring)."""
+
+    map_frame: str = "map"
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    camera_frame: str = ""
+    base_to_camera: tuple = OPTICAL_ON_BASE
+    gravity: str = "extrinsic"
+    gravity_vector: tuple = (0.0, 1.0, 0.0)
+    publish_tf: bool = True
+
+    PARAMETER_DOCS = {
+        "map_frame": "frame of the published poses, path, blocks and mesh: level, z up (REP-103)",
+        "odom_frame": "frame between map and base on /tf (map -> odom jumps with corrections, odom -> base is "
+        "continuous); empty: publish map -> base",
+        "base_frame": "the robot's body frame",
+        "camera_frame": "the camera's optical frame; empty: the colour image's header.frame_id",
+        "base_to_camera": "pose of the camera's optical frame in base_frame: x y z qx qy qz qw (default: at the "
+        "origin, looking along x)",
+        "gravity": "where the map's up comes from: extrinsic (base z up at the first frame), floor (the first "
+        "depth image's floor), vector (gravity_vector)",
+        "gravity_vector": "with gravity vector: down in the first camera's optical frame",
+        "publish_tf": "publish map -> odom -> base on /tf and base -> camera on /tf_static",
+    }
+
+    def check(self) -> None:
+        for name in ("map_frame", "base_frame"):
+            require(bool(getattr(self, name)), name, "a frame name", getattr(self, name))
+        frames = [f for f in (self.map_frame, self.odom_frame, self.base_frame, self.camera_frame) if f]
+        require(len(set(frames)) == len(frames), "map_frame", "frame names that differ from each other", frames)
+        q = np.asarray(self.base_to_camera, dtype=np.float64)
+        require(
+            q.shape == (7,) and np.isfinite(q).all() and np.linalg.norm(q[3:]) > 1e-6,
+            "base_to_camera",
+            "7 numbers x y z qx qy qz qw with a non-zero quaternion",
+            self.base_to_camera,
+        )
+        require(self.gravity in GRAVITY_SOURCES, "gravity", f"one of {', '.join(GRAVITY_SOURCES)}", self.gravity)
+        g = np.asarray(self.gravity_vector, dtype=np.float64)
+        require(
+            g.shape == (3,) and np.isfinite(g).all() and np.linalg.norm(g) > 1e-6,
+            "gravity_vector",
+            "3 numbers, not all zero",
+            self.gravity_vector,
+        )
+
+    @property
+    def T_base_cam(self) -> np.ndarray:
+        """The camera's pose in ``base_frame`` (4x4, quaternion normalised)."""
+        q = np.asarray(self.base_to_camera, dtype=np.float64)
+        return pose_from_tum(np.concatenate([q[:3], q[3:] / np.linalg.norm(q[3:])]))
+
+
+def map_alignment(
+    opt: FrameOptions, T_world_cam0: np.ndarray, first: RgbdFrame, warn: Callable[[str], None]
+) -> np.ndarray:
+    """``T_map_world`` (4x4) from the first frame ``first`` at ``T_world_cam0`` (the module docstring);
+    ``warn`` receives a line when the floor was asked for and not found."""
+    T_cam_base = invert(opt.T_base_cam)
+    T_world_base0 = T_world_cam0 @ T_cam_base
+    down_cam = T_cam_base[:3, :3] @ np.array([0.0, 0.0, -1.0])  # the base's down, in the camera frame
+    if opt.gravity == "vector":
+        down_cam = np.asarray(opt.gravity_vector, dtype=np.float64)
+    elif opt.gravity == "floor":
+        found = floor_down(first.depth_m, first.intrinsics, -down_cam)
+        if found is None:
+            warn("gravity floor: no floor in the first depth image; map z is base_frame's z (extrinsic)")
+        else:
+            down_cam = found
+    down_world = T_world_cam0[:3, :3] @ down_cam
+    return level_frame(down_world, T_world_base0[:3, 0], T_world_base0[:3, 3])
+
+
+def transform_msg(T: np.ndarray, stamp_ns: int, parent: str, child: str) -> TransformStamped:
+    tx, ty, tz, qx, qy, qz, qw = (float(v) for v in pose_to_tum(T))
+    return TransformStamped(
+        header=conversions.header(stamp_ns, parent),
+        child_frame_id=child,
+        transform=Transform(translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+    )
+
+
+class TfOutput:
+    """``/tf`` per frame and ``/tf_static`` once, for ``node`` (see the module docstring).
+
+    :meth:`frame` takes each processed frame's camera pose in ``map`` and the previous frame's pose as it
+    stands now (corrections applied), whose difference is the motion added to ``odom -> base``.
+    """
+
+    def __init__(self, node, opt: FrameOptions):
+        self.opt = opt
+        self.T_base_cam = opt.T_base_cam
+        self._T_cam_base = invert(self.T_base_cam)
+        # the QoS of tf2's broadcasters: /tf reliable, volatile, depth 100; /tf_static transient local
+        self.pub = node.create_publisher(TFMessage, "/tf", qos.events(100)) if opt.publish_tf else None
+        self.pub_static = node.create_publisher(TFMessage, "/tf_static", qos.state()) if opt.publish_tf else None
+        self.T_odom_base: np.ndarray | None = None
+        #: the camera's frame: ``camera_frame``, else the first image's frame id (odometry's child frame)
+        self.camera_frame = opt.camera_frame or "camera"
+
+    def frame(self, T_map_cam: np.ndarray, T_map_cam_prev: np.ndarray | None, stamp_ns: int, camera_frame: str) -> None:
+        """Publish the transforms of a frame at ``T_map_cam`` (``T_map_cam_prev``: the previous frame now,
+        None for the first); ``camera_frame``: the image's frame id (used without ``camera_frame``)."""
+        T_map_base = T_map_cam @ self._T_cam_base
+        first = self.T_odom_base is None or T_map_cam_prev is None
+        if first:
+            self.camera_frame = self.opt.camera_frame or camera_frame or "camera"
+            self.T_odom_base = T_map_base
+        else:
+            self.T_odom_base = self.T_odom_base @ invert(T_map_cam_prev @ self._T_cam_base) @ T_map_base
+        if self.pub is None:
+            return
+        if first:
+            msg = transform_msg(self.T_base_cam, stamp_ns, self.opt.base_frame, self.camera_frame)
+            self.pub_static.publish(TFMessage(transforms=[msg]))
+        o = self.opt
+        if o.odom_frame:
+            T_map_odom = T_map_base @ invert(self.T_odom_base)
+            transforms = [
+                transform_msg(T_map_odom, stamp_ns, o.map_frame, o.odom_frame),
+                transform_msg(self.T_odom_base, stamp_ns, o.odom_frame, o.base_frame),
+            ]
+        else:
+            transforms = [transform_msg(T_map_base, stamp_ns, o.map_frame, o.base_frame)]
+        self.pub.publish(TFMessage(transforms=transforms))

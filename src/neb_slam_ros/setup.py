@@ -1,5 +1,7 @@
 """Packaging of the ROS 2 nodes (ament_python): built by `colcon build`, run by `ros2 run neb_slam_ros <node>`."""
 
+from glob import glob
+
 from setuptools import setup
 
 PACKAGE = "neb_slam_ros"
@@ -16,6 +18,10 @@ setup(
         # the ament index marker and the manifest: how `ros2 run` / `ros2 pkg` find the package
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
+        # what `ros2 launch neb_slam_ros <file>` and $(find-pkg-share neb_slam_ros) find
+        (f"share/{PACKAGE}/launch", sorted(glob("launch/*.launch.xml"))),
+        (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
+        (f"share/{PACKAGE}/rviz", sorted(glob("rviz/*.rviz"))),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

@@ -127,6 +127,10 @@ def test_build_installs_the_five_node_executables(install_base: Path) -> None:
     # what `ros2 run` / `ros2 pkg` need to find the package
     assert (install_base / "neb_slam_ros/share/ament_index/resource_index/packages/neb_slam_ros").is_file()
     assert (install_base / "neb_slam_ros/share/neb_slam_ros/package.xml").is_file()
+    # what `ros2 launch neb_slam_ros <file>` and the launch files' $(find-pkg-share neb_slam_ros) find
+    share = install_base / "neb_slam_ros/share/neb_slam_ros"
+    for name in ("launch/slam.launch.xml", "launch/suite.launch.xml", "config/neb_slam.yaml", "rviz/neb_slam.rviz"):
+        assert (share / name).read_bytes() == (REPO / "src/neb_slam_ros" / name).read_bytes(), name
     # the core is a colcon package too, with its console script
     assert (install_base / "neb_slam_core/bin/neb-slam").is_file()
     assert (install_base / "setup.bash").is_file() and (install_base / "local_setup.sh").is_file()

@@ -38,3 +38,42 @@ def test_an_out_of_range_value_stops_the_mapper_naming_it(ros_env):
     done = _start("mapper", ros_env, "mesh_period_s:=-1.0")
     assert done.returncode == 2
     assert "parameter mesh_period_s: expected >= 0, got -1.0" in done.stderr
+
+
+@pytest.mark.parametrize(
+    "param, expected",
+    [
+        ("base_to_camera:=[0.0, 0.0, 0.5]", "parameter base_to_camera: expected 7 numbers x y z qx qy qz qw"),
+        ("gravity:=imu", "parameter gravity: expected one of extrinsic, floor, vector, got 'imu'"),
+        ("base_to_camera:=[a, b]", "parameter base_to_camera: expected "),
+    ],
+)
+def test_a_bad_frame_parameter_stops_the_tracker_naming_it(param, expected, ros_env):
+    done = _start("tracker", ros_env, param)
+    assert done.returncode == 2, done.stderr
+    assert expected in done.stderr and "Traceback" not in done.stderr
+
+
+def test_parameters_are_read_only_so_setting_one_at_run_time_is_refused(ros_env, monkeypatch):
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.parameter import Parameter
+
+    from neb_slam_ros.frames import FrameOptions
+    from neb_slam_ros.params import declare_config, declare_options
+
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        monkeypatch.setenv(key, ros_env[key])
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("read_only_test", context=context)
+        declare_config(node, "ci")
+        opt = declare_options(node, FrameOptions)
+        assert opt.base_to_camera == FrameOptions.base_to_camera  # a double array reads back as the tuple
+        for name, value in (("map_frame", "elsewhere"), ("tracking.n_rays", 64), ("config", "tum")):
+            (result,) = node.set_parameters([Parameter(name, value=value)])
+            assert not result.successful and "read-only" in result.reason, (name, result.reason)
+        assert node.get_parameter("map_frame").value == "map"
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

@@ -15,7 +15,7 @@ pays the real network cost and finds known surfaces. ``--voxel`` (0.1 m) keeps t
 extraction within seconds. Timed, per publication (median of ``--repeats``):
 
 - ``mesh_old_ms``: the reference ``MapOutputs.publish`` of the reference ``extract_mesh`` (every block);
-- ``mesh_new_all_ms``: ``MapOutputs.publish_current_mesh`` after every block's table changed (every block
+- ``mesh_new_all_ms``: ``MapOutputs.publish_current_map`` after every block's table changed (every block
   re-extracted, every marker sent);
 - ``mesh_new_changed_ms``: the same after ``--changed`` blocks changed (those and the blocks within their
   reach are re-extracted and sent: ``mesh_new_changed_blocks``);
@@ -235,12 +235,12 @@ def main() -> None:
             revisions[b] += 1
 
     figures["mesh_old_ms"] = median_ms(old_mesh, args.repeats)
-    new.publish_current_mesh()  # the first publication: every block to the subscriber
+    new.publish_current_map()  # the first publication: every block to the subscriber
     figures.update(compare_meshes(old_sent[-1].markers, deserialize_message(sent[0], MarkerArray).markers))
     every = range(len(block_map))
-    figures["mesh_new_all_ms"] = median_ms(lambda: (bump(every), new.publish_current_mesh()), args.repeats)
+    figures["mesh_new_all_ms"] = median_ms(lambda: (bump(every), new.publish_current_map()), args.repeats)
     changed = list(range(args.changed))
-    figures["mesh_new_changed_ms"] = median_ms(lambda: (bump(changed), new.publish_current_mesh()), args.repeats)
+    figures["mesh_new_changed_ms"] = median_ms(lambda: (bump(changed), new.publish_current_map()), args.repeats)
     figures["mesh_new_changed_blocks"] = len(deserialize_message(sent[-1], MarkerArray).markers)
     figures["mesh_blocks_with_triangles"] = len(new._markers)
 
@@ -257,7 +257,7 @@ def main() -> None:
 
     figures["mesh_conversion_new_ms"] = median_ms(new_conversion, args.repeats)
     new.pub_mesh.get_subscription_count = lambda: 0
-    figures["mesh_new_no_subscriber_ms"] = median_ms(lambda: (bump(every), new.publish_current_mesh()), args.repeats)
+    figures["mesh_new_no_subscriber_ms"] = median_ms(lambda: (bump(every), new.publish_current_map()), args.repeats)
     for key in ("all", "changed", "no_subscriber"):
         figures[f"mesh_{key}_ratio"] = figures[f"mesh_new_{key}_ms"] / figures["mesh_old_ms"]
     figures["mesh_conversion_ratio"] = figures["mesh_conversion_new_ms"] / figures["mesh_conversion_old_ms"]

@@ -1,7 +1,8 @@
 """An independent subscriber process (what another robot's stack would be): it records what the suite
 publishes on pose, path, blocks and mesh (the markers it holds, each message updating the blocks it names),
 odometry (each pose covariance's diagonal), /diagnostics (the tracking statuses), /tf and /tf_static (every
-transform), and on SIGINT writes a JSON summary to the path given as argv[1]."""
+transform), map_cloud and map_grid (their sizes), and on SIGINT writes a JSON summary to the path given as
+argv[1]."""
 
 import json
 import sys
@@ -9,9 +10,10 @@ import sys
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Odometry, Path
+from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
@@ -20,6 +22,8 @@ seen = {
     "poses": [],  # [stamp, frame_id, x, y, z, qx, qy, qz, qw]
     "tf": [],  # [stamp, parent, child, x, y, z, qx, qy, qz, qw]
     "tf_static": [],
+    "map_cloud_points": 0,  # of the latest map_cloud
+    "map_grid": None,  # [width, height, cells unknown, free, occupied, frame] of the latest map_grid
     "path_lengths": [],
     "path_stamps_ns": [],
     "block_ids": [],
@@ -53,6 +57,14 @@ def main() -> None:
     node.create_subscription(PoseStamped, "pose", on_pose, stream)
     node.create_subscription(TFMessage, "/tf", lambda m: on_tf("tf", m), stream)
     node.create_subscription(TFMessage, "/tf_static", lambda m: on_tf("tf_static", m), state)
+
+    def on_grid(m):
+        cells = list(m.data)
+        counts = [sum(1 for c in cells if c == v) for v in (-1, 0, 100)]
+        seen["map_grid"] = [m.info.width, m.info.height, *counts, m.header.frame_id]
+
+    node.create_subscription(PointCloud2, "map_cloud", lambda m: seen.update(map_cloud_points=m.width), state)
+    node.create_subscription(OccupancyGrid, "map_grid", on_grid, state)
 
     def on_path(m):
         seen["path_lengths"].append(len(m.poses))

@@ -155,10 +155,10 @@ def test_a_changed_block_is_published_alone_as_the_per_point_conversion_had_it(n
     observed = _observed(-0.9, 3.9)
     revisions = {0: 1, 1: 1}
     out = _map_outputs(node, block_map, observed, revisions, tmp_path)
-    out.publish_current_mesh()  # the first subscriber: every block
+    out.publish_current_map()  # the first subscriber: every block
     assert sorted(_markers(out.pub_mesh.sent[-1])) == [0, 1]
     revisions[1] = 2  # a mapping step changed block 1's table
-    out.publish_current_mesh()
+    out.publish_current_map()
     markers = _markers(out.pub_mesh.sent[-1])
     assert list(markers) == [1]  # block 0 did not change: not sent again
     m = markers[1]
@@ -168,7 +168,7 @@ def test_a_changed_block_is_published_alone_as_the_per_point_conversion_had_it(n
     got = _triangles([(p.x, p.y, p.z) for p in m.points], [(c.r, c.g, c.b, c.a) for c in m.colors])
     assert len(got) == len(expected) > 100
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
-    out.publish_current_mesh()  # nothing changed since: nothing published
+    out.publish_current_map()  # nothing changed since: nothing published
     assert len(out.pub_mesh.sent) == 2
 
 
@@ -176,16 +176,16 @@ def test_a_block_that_loses_its_triangles_gets_a_delete_marker(node, tmp_path):
     block_map = _plane_map([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
     revisions = {0: 1, 1: 1}
     out = _map_outputs(node, block_map, _observed(-0.9, 3.9), revisions, tmp_path)
-    out.publish_current_mesh()
+    out.publish_current_map()
     assert len(_markers(out.pub_mesh.sent[-1])[1].points) > 0
     block_map.cut = 1.5  # the surface now ends between the blocks
     revisions[1] = 2
-    out.publish_current_mesh()
+    out.publish_current_map()
     markers = _markers(out.pub_mesh.sent[-1])
     assert list(markers) == [1]
     assert markers[1].action == markers[1].DELETE and len(markers[1].points) == 0
     revisions[1] = 3
-    out.publish_current_mesh()  # still no triangles: nothing to delete again
+    out.publish_current_map()  # still no triangles: nothing to delete again
     assert len(out.pub_mesh.sent) == 2
 
 
@@ -206,23 +206,99 @@ def test_nothing_is_extracted_without_a_subscriber_and_a_new_one_gets_every_bloc
     out.pub_mesh.subscribers = 0
     for step in range(2, 5):
         revisions[0] = step
-        assert "no subscriber" in out.publish_current_mesh()
+        assert "no subscriber" in out.publish_current_map()
     assert calls == [] and out.pub_mesh.sent == []
     out.pub_mesh.subscribers = 1
-    out.publish_current_mesh()
+    out.publish_current_map()
     assert calls == [[0, 1]] and sorted(_markers(out.pub_mesh.sent[-1])) == [0, 1]
     revisions[0] = 5
     out.pub_mesh.subscribers = 2  # a second subscriber arrived since: every block again, block 0 re-extracted
-    out.publish_current_mesh()
+    out.publish_current_map()
     assert calls[-1] == [0] and sorted(_markers(out.pub_mesh.sent[-1])) == [0, 1]
 
 
 def test_the_mesh_is_stamped_with_the_node_clock(node, tmp_path):
     block_map = _plane_map([[0.0, 0.0, 0.0]])
     out = _map_outputs(node, block_map, _observed(-0.9, 0.9), {0: 1}, tmp_path)
-    out.publish_current_mesh()
+    out.publish_current_map()
     stamp = _markers(out.pub_mesh.sent[-1])[0].header.stamp
     assert stamp.sec * 1_000_000_000 + stamp.nanosec == SIM_NS  # simulated time, not the wall clock
+
+
+def _cloud_rows(msg) -> np.ndarray:
+    """A map_cloud message's points as rows (x, y, z, r, g, b), read from its bytes by its field layout."""
+    from sensor_msgs.msg import PointCloud2
+
+    msg = _read(msg, PointCloud2)
+    assert [(f.name, f.offset, f.datatype) for f in msg.fields] == [
+        ("x", 0, 7),
+        ("y", 4, 7),
+        ("z", 8, 7),
+        ("rgb", 12, 7),
+    ]  # 7: FLOAT32
+    assert msg.point_step == 16 and msg.row_step == 16 * msg.width and msg.height == 1
+    raw = np.frombuffer(bytes(msg.data), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
+    rgb = np.stack([(raw["rgb"] >> 16) & 255, (raw["rgb"] >> 8) & 255, raw["rgb"] & 255], axis=1)
+    rows = np.concatenate([np.stack([raw["x"], raw["y"], raw["z"]], axis=1).astype(np.float64), rgb], axis=1)
+    return rows[np.lexsort(rows.T[::-1])]
+
+
+def test_the_map_cloud_holds_every_blocks_mesh_vertices_in_the_map_frame(node, tmp_path):
+    from neb_slam_core.config import MeshConfig
+    from neb_slam_core.mesh import extract_block_meshes
+
+    block_map = _plane_map([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    observed = _observed(-0.9, 3.9)
+    revisions = {0: 1, 1: 1}
+    out = _map_outputs(node, block_map, observed, revisions, tmp_path)
+    out.pub_mesh.subscribers = 0  # only the cloud is wanted: it is extracted all the same
+    out.pub_cloud = SpyPublisher()
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+    T[:3, 3] = [0.5, -0.2, 1.0]
+    out.align(T)
+    out.publish_current_map()
+    assert out.pub_mesh.sent == [] and len(out.pub_cloud.sent) == 1
+    parts = extract_block_meshes(block_map, MeshConfig(voxel_size_m=0.05, cull_distance_m=0.1), observed, [0, 1])
+    verts = np.concatenate([v for v, _, _ in parts.values()]) @ T[:3, :3].T + T[:3, 3]
+    rgb = np.concatenate([c for _, _, c in parts.values()]).astype(np.float64)
+    expected = np.concatenate([verts, rgb], axis=1)
+    expected = expected[np.lexsort(expected.T[::-1])]
+    got = _cloud_rows(out.pub_cloud.sent[0])
+    assert len(got) == len(expected) > 100
+    np.testing.assert_allclose(got[:, :3], expected[:, :3], atol=1e-6)  # float32 coordinates
+    np.testing.assert_array_equal(got[:, 3:], expected[:, 3:])
+    out.publish_current_map()  # nothing changed: the latched cloud stands
+    assert len(out.pub_cloud.sent) == 1
+    block_map.cut = 1.5  # block 1 loses its surface: the cloud goes out without it
+    revisions[1] = 2
+    out.publish_current_map()
+    assert len(out.pub_cloud.sent) == 2 and len(_cloud_rows(out.pub_cloud.sent[1])) < len(got)
+
+
+def test_the_map_grid_is_the_sdf_slice_at_its_height_unknown_where_unseen(node, tmp_path):
+    from nav_msgs.msg import OccupancyGrid
+
+    from neb_slam_ros.outputs import MapTopicOptions
+
+    block_map = _plane_map([[0.0, 0.0, 0.0]])  # x, y in -1..1; the plane z = PLANE_Z
+    for b in block_map.blocks:
+        b.observed[:] = True
+        b.observed[: b.observed.shape[0] // 2] = False  # x < 0 unseen
+    out = _map_outputs(node, block_map, _observed(-0.9, 0.9), {0: 1}, tmp_path)
+    out.pub_mesh.subscribers = 0
+    out.pub_grid = SpyPublisher()
+    for height, inside in ((0.3, 100), (0.7, 0)):  # 1.1 cm below the plane: occupied; 39 cm above: free
+        out.topics = MapTopicOptions(grid_height_m=height, grid_resolution_m=0.25)
+        out.truncation_m = 0.1  # the plane map's SDF unit
+        out.publish_current_map()
+        grid = _read(out.pub_grid.sent[-1], OccupancyGrid)
+        assert grid.header.frame_id == "map"
+        assert (grid.info.width, grid.info.height, grid.info.resolution) == (8, 8, 0.25)
+        o = grid.info.origin.position
+        assert (o.x, o.y, o.z) == (-1.0, -1.0, height)
+        cells = np.array(grid.data, dtype=np.int8).reshape(8, 8)
+        assert (cells[:, :4] == -1).all() and (cells[:, 4:] == inside).all(), cells
 
 
 def _frontend(n_frames: int):

@@ -129,6 +129,11 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
         seen["mesh_points"],
         len(mesh.faces),
     )
+    # the final map_cloud is the final mesh's vertices, kept per block (seams not merged); the final grid
+    # covers the blocks with a cell for every 10 cm, some of them seen
+    assert len(mesh.vertices) <= seen["map_cloud_points"] <= 3 * len(mesh.faces), seen["map_cloud_points"]
+    width, height, unknown, free, occupied, frame = seen["map_grid"]
+    assert frame == "map" and width * height == unknown + free + occupied and free + occupied > 0, seen["map_grid"]
     for name in ("groundtruth.txt", "metrics.json", "trajectory.png", "config.yaml"):
         assert (run.run_dir / name).is_file(), name
     # tracking health: the first pose defines the map frame (zero covariance), every tracked one has a

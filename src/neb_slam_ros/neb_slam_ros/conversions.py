@@ -12,7 +12,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Twist, Vector3
 from nav_msgs.msg import Odometry, Path
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -290,3 +290,49 @@ def mesh_marker_msgs(parts, ns: int, frame_id: str) -> MarkerArray:
             m.colors = [ColorRGBA(r=r, g=g, b=b, a=a) for r, g, b, a in np.asarray(colors, dtype=np.float64).tolist()]
         out.markers.append(m)
     return out
+
+
+def point_cloud_msg(points: np.ndarray, rgb: np.ndarray, ns: int, frame_id: str) -> PointCloud2:
+    """An unorganised PointCloud2 of ``(N, 3)`` points (metres) with colours ``(N, 3)`` uint8: fields x, y, z
+    (float32) and rgb (the float32 whose bytes are 0x00RRGGBB, the layout RViz and PCL read), 16 bytes a
+    point, little endian."""
+    n = len(points)
+    data = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    data["x"], data["y"], data["z"] = p[:, 0], p[:, 1], p[:, 2]
+    c = np.asarray(rgb, dtype=np.uint32).reshape(-1, 3)
+    data["rgb"] = (c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]
+    fields = [
+        PointField(name=name, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+        for i, name in enumerate(("x", "y", "z", "rgb"))
+    ]
+    msg = PointCloud2(
+        header=header(ns, frame_id),
+        height=1,
+        width=n,
+        fields=fields,
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * n,
+        is_dense=True,
+    )
+    msg.data = data.tobytes()
+    return msg
+
+
+def occupancy_grid_msg(grid, ns: int, frame_id: str):
+    """nav_msgs/OccupancyGrid of an :class:`~neb_slam_core.occupancy.OccupancySlice` (cells -1 unknown, 0 free,
+    100 occupied; row = y): cell (0, 0)'s corner at the slice's origin and height in ``frame_id``, axes
+    aligned with it."""
+    from nav_msgs.msg import OccupancyGrid
+
+    h, w = grid.cells.shape
+    msg = OccupancyGrid(header=header(ns, frame_id))
+    msg.info.map_load_time = to_time(ns)
+    msg.info.resolution = float(grid.resolution_m)
+    msg.info.width, msg.info.height = int(w), int(h)
+    x0, y0 = grid.origin_xy
+    msg.info.origin.position = Point(x=float(x0), y=float(y0), z=float(grid.height_m))
+    msg.info.origin.orientation.w = 1.0
+    msg.data = array.array("b", np.asarray(grid.cells, dtype=np.int8).tobytes())
+    return msg

@@ -48,8 +48,8 @@ from neb_slam_ros import conversions, qos
 from neb_slam_ros._node_main import run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
 from neb_slam_ros.node import NebNode
-from neb_slam_ros.outputs import FINAL_MESH_ACK_S, MapOutputs
-from neb_slam_ros.params import map_parameter, require
+from neb_slam_ros.outputs import FINAL_MESH_ACK_S, MapOutputs, MapTopicOptions
+from neb_slam_ros.params import declare_options, map_parameter, require
 
 
 @dataclass(frozen=True)
@@ -110,6 +110,8 @@ class MapperNode(NebNode):
             observed_points=lambda: self.backend.observed_points(self._rng),
             write_map=self._write_map,
             block_revisions=lambda: self.backend.mapper.revisions,
+            topics=declare_options(self, MapTopicOptions),
+            truncation_m=self.cfg.render.truncation_m,
         )
         self._n_update_subscribers = 0
         if self.opt.map_file:

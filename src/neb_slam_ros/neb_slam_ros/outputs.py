@@ -13,18 +13,21 @@ that changed, and both are serialized straight from numpy arrays (:mod:`neb_slam
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.msg import Path as PathMsg
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks
+from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from neb_slam_core.io.run_dir import RunDirectory
@@ -32,6 +35,7 @@ from neb_slam_core.io.trajectory import Trajectory
 from neb_slam_core.types import StepResult
 from neb_slam_ros import cdr, conversions, qos
 from neb_slam_ros.frames import FrameOptions, TfOutput
+from neb_slam_ros.params import require
 
 #: at shutdown, how long a published mesh or path may wait for every subscriber's acknowledgement (the
 #: process ends right after; a reliable message not yet received would be lost with it)
@@ -260,13 +264,31 @@ def block_centres(block_map) -> np.ndarray:
     return block_map.centres().detach().cpu().double().numpy().reshape(-1, 3)
 
 
+@dataclass(frozen=True)
+class MapTopicOptions:
+    """Parameters of ``map_grid`` (``mapper``, ``slam``)."""
+
+    grid_height_m: float = 0.3
+    grid_resolution_m: float = 0.1
+
+    PARAMETER_DOCS = {
+        "grid_height_m": "height of the map_grid slice in the map frame (z up, 0 at the first base position)",
+        "grid_resolution_m": "cell size of map_grid",
+    }
+
+    def check(self) -> None:
+        require(self.grid_resolution_m > 0, "grid_resolution_m", "> 0", self.grid_resolution_m)
+        require(math.isfinite(self.grid_height_m), "grid_height_m", "a finite height", self.grid_height_m)
+
+
 class MapOutputs:
-    """The mesh topic and the map's services of ``node`` (a :class:`~neb_slam_ros.node.NebNode`).
+    """The map topics (``mesh``, ``map_cloud``, ``map_grid``) and the map's services of ``node`` (a
+    :class:`~neb_slam_ros.node.NebNode`).
 
     ``mesh`` (transient local) is one TRIANGLE_LIST marker per block; a message carries only the blocks
     whose part changed since the last one (RViz's MarkerArray display, like any subscriber that keeps
     markers by namespace and id, updates just those), with a DELETE marker for a block that lost its
-    triangles. The periodic publication (:meth:`publish_current_mesh`) builds nothing while nobody
+    triangles. The periodic publication (:meth:`publish_current_map`) builds nothing while nobody
     subscribes; otherwise it re-extracts only the blocks whose table changed since they were last
     extracted, and the blocks within their reach (:func:`~neb_slam_core.mesh.affected_blocks`), and keeps
     every block's marker. A subscriber that arrives later receives the latest message at once (transient
@@ -275,6 +297,13 @@ class MapOutputs:
     final mesh extract every block and publish every marker. Stamps come from the node's clock (sim time
     under ``use_sim_time``). The decoders, which every mapping step refines, are shared by all blocks: a
     block that no step changes keeps the surface of its last extraction until then.
+
+    ``map_cloud`` (PointCloud2, transient local) holds the mesh's vertices with their colours, every block's,
+    from the same extraction (kept per block, so a publication re-extracts only what changed); it goes out
+    when it changed or a subscriber came. ``map_grid`` (OccupancyGrid, transient local) is a horizontal slice
+    of the SDF at ``grid_height_m`` of ``frame_id`` (:mod:`neb_slam_core.occupancy`: unknown where no
+    keyframe looked), computed at each periodic publication while someone subscribes. Nothing is computed
+    for a topic nobody subscribes.
 
     Args:
         frame_id: frame of the mesh.
@@ -286,6 +315,8 @@ class MapOutputs:
         write_map: writes the map checkpoint into a run directory; returns its path.
         block_revisions: per block id, how many optimisation calls changed its table
             (:attr:`neb_slam_core.mapping.mapper.Mapper.revisions`).
+        topics: the ``map_grid`` slice (:class:`MapTopicOptions`).
+        truncation_m: the engine's truncation (the SDF's unit).
     """
 
     def __init__(
@@ -299,8 +330,12 @@ class MapOutputs:
         observed_points: Callable[[], np.ndarray],
         write_map: Callable[[RunDirectory], Path],
         block_revisions: Callable[[], dict[int, int]],
+        topics: MapTopicOptions = MapTopicOptions(),
+        truncation_m: float = 0.1,
     ):
         self.frame_id = frame_id
+        self.topics = topics
+        self.truncation_m = truncation_m
         self.mesh_cfg = mesh_cfg
         self.out_dir = out_dir
         self._node = node
@@ -312,16 +347,21 @@ class MapOutputs:
         self._markers: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # block id -> (points, colors) published
         self._extracted: dict[int, int] = {}  # block id -> its revision when last extracted
         self._subscribers = 0  # subscription count at the last publication
+        self._cloud: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # block id -> (vertices in frame_id, rgb)
+        self._cloud_changed = False
+        self._cloud_subscribers = 0
         self.pub_mesh = node.create_publisher(
             MarkerArray,
             "mesh",
             qos.state(),
             event_callbacks=PublisherEventCallbacks(matched=self._on_matched),
         )
+        self.pub_cloud = node.create_publisher(PointCloud2, "map_cloud", qos.state())
+        self.pub_grid = node.create_publisher(OccupancyGrid, "map_grid", qos.state())
         node.worker_service("save_mesh", self.save_mesh)
         node.worker_service("save_map", self.save_map)
         if mesh_period_s > 0:
-            node.worker_timer(mesh_period_s, self.publish_current_mesh, "publish_mesh")
+            node.worker_timer(mesh_period_s, self.publish_current_map, "publish_map")
 
     def align(self, T_map_world: np.ndarray) -> None:
         """Publish from now on in ``frame_id`` = the engine's world moved by ``T_map_world``; markers
@@ -331,6 +371,7 @@ class MapOutputs:
             return
         self.T_map_world = T
         self._markers.clear()
+        self._cloud.clear()
         self._extracted.clear()
 
     def run_dir(self) -> RunDirectory:
@@ -373,36 +414,75 @@ class MapOutputs:
             if len(faces):
                 verts = np.asarray(verts, dtype=np.float64) @ R.T + t
                 out[b] = self._markers[b] = conversions.triangle_list(verts, faces, colours)
-            elif self._markers.pop(b, None) is not None:
-                out[b] = None
+                self._cloud[b] = (verts, np.asarray(colours)[:, :3])
+                self._cloud_changed = True
+            else:
+                self._cloud_changed |= self._cloud.pop(b, None) is not None
+                if self._markers.pop(b, None) is not None:
+                    out[b] = None
         return out
 
-    def publish_current_mesh(self) -> str:
-        """The periodic publication: the blocks whose part changed since the last one (every kept marker
-        when the subscriber count rose since); nothing is extracted while nobody subscribes."""
+    def publish_current_map(self) -> str:
+        """The periodic publication: ``mesh`` with the blocks whose part changed since the last one (every
+        kept marker when the subscriber count rose since), ``map_cloud`` when it changed, ``map_grid``; only
+        to topics someone subscribes, and nothing is extracted while nobody does."""
         from neb_slam_core.mesh import affected_blocks, extract_block_meshes
 
-        n = self.pub_mesh.get_subscription_count()
-        if n == 0:
+        n_mesh = self.pub_mesh.get_subscription_count()
+        n_cloud = self.pub_cloud.get_subscription_count()
+        n_grid = self.pub_grid.get_subscription_count()
+        if n_mesh == 0:
             self._subscribers = 0
+        if n_mesh + n_cloud + n_grid == 0:
+            self._cloud_subscribers = 0
             return "no subscriber: nothing extracted"
         block_map = self._block_map()
         if block_map is None or len(block_map) == 0:
             return "nothing mapped yet"
-        revisions = dict(self._block_revisions())
-        now = {b: revisions.get(b, 0) for b in range(len(block_map))}
-        changed = [b for b, r in now.items() if self._extracted.get(b) != r]
-        redo = affected_blocks(block_map, self.mesh_cfg, changed)
-        parts = extract_block_meshes(block_map, self.mesh_cfg, self._observed_points(), redo) if redo else {}
-        self._extracted.update({b: now[b] for b in redo})
-        send = self._keep(parts)
-        if n > self._subscribers:  # someone new: everything, not just what changed
-            send = {**self._markers, **send}
-        self._subscribers = n
-        if not send:
-            return f"{len(redo)} blocks re-extracted, nothing changed"
-        self._send(send)
-        return f"{len(redo)} blocks re-extracted, {len(send)} markers published"
+        said = []
+        if n_mesh or n_cloud:
+            revisions = dict(self._block_revisions())
+            now = {b: revisions.get(b, 0) for b in range(len(block_map))}
+            changed = [b for b, r in now.items() if self._extracted.get(b) != r]
+            redo = affected_blocks(block_map, self.mesh_cfg, changed)
+            parts = extract_block_meshes(block_map, self.mesh_cfg, self._observed_points(), redo) if redo else {}
+            self._extracted.update({b: now[b] for b in redo})
+            send = self._keep(parts)
+            said.append(f"{len(redo)} blocks re-extracted")
+            if n_mesh:
+                if n_mesh > self._subscribers:  # someone new: everything, not just what changed
+                    send = {**self._markers, **send}
+                self._subscribers = n_mesh
+                if send:
+                    self._send(send)
+                    said.append(f"{len(send)} markers published")
+            if n_cloud and (self._cloud_changed or n_cloud > self._cloud_subscribers):
+                said.append(self._send_cloud())
+            self._cloud_subscribers = n_cloud
+        if n_grid:
+            said.append(self._send_grid(block_map))
+        return ", ".join(said)
+
+    def _send_cloud(self) -> str:
+        parts = list(self._cloud.values())
+        points = np.concatenate([v for v, _ in parts]) if parts else np.zeros((0, 3))
+        rgb = np.concatenate([c for _, c in parts]) if parts else np.zeros((0, 3), np.uint8)
+        ns = self._node.get_clock().now().nanoseconds
+        self.pub_cloud.publish(conversions.point_cloud_msg(points, rgb, ns, self.frame_id))
+        self._cloud_changed = False
+        return f"{len(points)} cloud points"
+
+    def _send_grid(self, block_map) -> str:
+        from neb_slam_core.geometry.se3 import invert
+        from neb_slam_core.occupancy import occupancy_slice
+
+        o = self.topics
+        grid = occupancy_slice(
+            block_map, self.truncation_m, invert(self.T_map_world), o.grid_height_m, o.grid_resolution_m
+        )
+        ns = self._node.get_clock().now().nanoseconds
+        self.pub_grid.publish(conversions.occupancy_grid_msg(grid, ns, self.frame_id))
+        return f"grid {grid.cells.shape[1]}x{grid.cells.shape[0]}"
 
     def publish(self, mesh, ack_timeout_s: float = 0.0) -> str:
         """Publish the whole mesh ``mesh`` (of every block: ``save_mesh``, the final one), every block's
@@ -419,6 +499,12 @@ class MapOutputs:
         self._extracted = {b: revisions.get(b, 0) for b in range(len(block_map))}
         self._subscribers = self.pub_mesh.get_subscription_count()
         self._send(send, ack_timeout_s)
+        if self.pub_cloud.get_subscription_count():
+            self._send_cloud()
+            self.pub_cloud.wait_for_all_acked(Duration(seconds=ack_timeout_s))
+        if self.pub_grid.get_subscription_count():
+            self._send_grid(block_map)
+            self.pub_grid.wait_for_all_acked(Duration(seconds=ack_timeout_s))
         return f"{len(mesh.faces)} faces"
 
     def _on_matched(self, info) -> None:

@@ -39,7 +39,14 @@ from neb_slam_ros._node_main import run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
 from neb_slam_ros.frames import FrameOptions, map_alignment
 from neb_slam_ros.node import NebNode
-from neb_slam_ros.outputs import FINAL_MESH_ACK_S, HealthOutput, MapOutputs, PoseOutputs, block_centres
+from neb_slam_ros.outputs import (
+    FINAL_MESH_ACK_S,
+    HealthOutput,
+    MapOutputs,
+    MapTopicOptions,
+    PoseOutputs,
+    block_centres,
+)
 from neb_slam_ros.params import declare_options, map_parameter, require
 
 
@@ -112,6 +119,8 @@ class SlamNode(NebNode):
             observed_points=lambda: self.slam.observed_points(),
             write_map=lambda run_dir: run_dir.write_map(self.slam, self.run_log.frames),
             block_revisions=lambda: self.slam.backend.mapper.revisions,
+            topics=declare_options(self, MapTopicOptions),
+            truncation_m=self.cfg.render.truncation_m,
         )
         self.start_worker()
         start = f", continuing {self.opt.map_file} ({len(self._map)} blocks)" if self._map is not None else ""

@@ -90,7 +90,7 @@ def test_a_launch_file_names_only_the_packages_executables_and_existing_files(la
             assert Path(view).is_file(), view
 
 
-def _start(node: dict, env: dict[str, str]) -> subprocess.Popen:
+def _start(node: dict, env: dict[str, str], log: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", f"neb_slam_ros.{node['exec']}", "--ros-args", "-r", f"__ns:=/{node['namespace']}"]
     for f in node["param_files"]:
         cmd += ["--params-file", f]
@@ -98,7 +98,7 @@ def _start(node: dict, env: dict[str, str]) -> subprocess.Popen:
         cmd += ["-p", f"{name}:={value}" if value != "" else f"{name}:=''"]
     for a, b in node["remaps"].items():
         cmd += ["-r", f"{a}:={b}"]
-    return subprocess.Popen(cmd, env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(cmd, env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=log.open("w"))
 
 
 def _params_file_values(path: str, node_name: str) -> dict:
@@ -116,7 +116,7 @@ def _params_file_values(path: str, node_name: str) -> dict:
     return dict(flat(section))
 
 
-def test_every_parameter_and_remap_of_the_launch_files_reaches_a_running_node(ros_env, monkeypatch):
+def test_every_parameter_and_remap_of_the_launch_files_reaches_a_running_node(ros_env, monkeypatch, tmp_path):
     rclpy = pytest.importorskip("rclpy")
     from rcl_interfaces.srv import GetParameters
     from rclpy.executors import SingleThreadedExecutor
@@ -130,7 +130,8 @@ def test_every_parameter_and_remap_of_the_launch_files_reaches_a_running_node(ro
         for n in _nodes(launch):
             if n["pkg"] == "neb_slam_ros":
                 plan[(n["namespace"], n["name"])] = n
-    procs = {key: _start(n, ros_env) for key, n in plan.items()}
+    logs = {key: tmp_path / f"{key[1]}.log" for key in plan}
+    procs = {key: _start(n, ros_env, logs[key]) for key, n in plan.items()}
     context = rclpy.Context()
     rclpy.init(context=context)
     probe = rclpy.create_node("launch_probe", context=context)
@@ -142,7 +143,7 @@ def test_every_parameter_and_remap_of_the_launch_files_reaches_a_running_node(ro
             for f in n["param_files"]:
                 expected = {**_params_file_values(f, name), **expected}
             client = probe.create_client(GetParameters, f"/{ns}/{name}/get_parameters")
-            assert client.wait_for_service(START_TIMEOUT_S), (name, procs[(ns, name)].stderr.read())
+            assert client.wait_for_service(START_TIMEOUT_S), (name, logs[(ns, name)].read_text())
             for key, want in expected.items():  # one by one: a request naming an undeclared one gets nothing
                 future = client.call_async(GetParameters.Request(names=[key]))
                 executor.spin_until_future_complete(future, timeout_sec=30.0)
@@ -152,7 +153,7 @@ def test_every_parameter_and_remap_of_the_launch_files_reaches_a_running_node(ro
                 got = list(got) if isinstance(got, (list, tuple)) or hasattr(got, "tolist") else got
                 assert got == (list(want) if isinstance(want, (list, tuple)) else want), (name, key, got, want)
             # every remap moved one of the node's topics: the target is among its subscriptions
-            deadline = time.monotonic() + 30.0
+            deadline = time.monotonic() + START_TIMEOUT_S
             while True:
                 try:
                     subs = {t for t, _ in probe.get_subscriber_names_and_types_by_node(name, f"/{ns}")}
@@ -161,7 +162,7 @@ def test_every_parameter_and_remap_of_the_launch_files_reaches_a_running_node(ro
                 if set(n["remaps"].values()) <= subs or time.monotonic() > deadline:
                     break
                 time.sleep(0.2)
-            assert set(n["remaps"].values()) <= subs, (name, n["remaps"], subs)
+            assert set(n["remaps"].values()) <= subs, (name, n["remaps"], subs, logs[(ns, name)].read_text())
             if name == "slam":
                 _check_rviz_view(probe, ns, name)
     finally:

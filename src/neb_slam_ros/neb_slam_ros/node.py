@@ -32,6 +32,7 @@ from typing import Any
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
+from neb_slam_core.engine_process import prepare_engine_process
 from neb_slam_ros import NAMESPACE
 from neb_slam_ros.params import declare_config, declare_options
 
@@ -126,6 +127,8 @@ class NebNode(Node):
     ) -> None:
         super().__init__(name, namespace=kwargs.pop("namespace", NAMESPACE), **kwargs)
         self.cfg = declare_config(self) if with_config else None
+        if self.cfg is not None:  # an engine node: its first frame pays no one-time cost
+            prepare_engine_process(self.cfg.grid_backend)
         self.opt = declare_options(self, options) if options is not None else None
         self.cond = threading.Condition()
         self._stopping = threading.Event()

@@ -225,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
     root = Path(dataset.root)
     if gt_mesh is None and root.is_dir() and (root / SYNTH_SCENE_FILE).is_file() and (root / SYNTH_MESH_FILE).is_file():
         gt_mesh = root / SYNTH_MESH_FILE
-    from ..scene import _ext
+    from ..engine_process import prepare_engine_process
     from ..slam import Slam, load_map_for
 
     block_map = None if args.map is None else load_map_for(cfg, args.map)
@@ -260,9 +260,9 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
 
-    _ext.prepare(
-        cfg.grid_backend
-    )  # loading the C++ kernels (compiling them, in the fallback) is not the first frame's time
+    # loading the C++ kernels (compiling them, in the fallback) and torch's first-use costs are not the
+    # first frame's time
+    prepare_engine_process(cfg.grid_backend)
     if args.live:
         from ..live import LiveSlam
 

@@ -1,0 +1,40 @@
+"""Process-wide preparation of a process that runs the engine: :func:`prepare_engine_process`.
+
+Two things are done once, before the first frame arrives, by whoever owns the process (the ROS nodes,
+``neb-slam run``):
+
+- **Short GIL turns.** The engine's threads (tracking, mapping, loop closure; in a ROS node also the
+  executor's callbacks and a replay) run many short torch operations, each releasing the GIL and taking
+  it back. A thread that wants it back waits until the holder's turn ends, up to the interpreter's switch
+  interval (5 ms by default) whenever another thread runs Python: hundreds of operations per tracked
+  frame then wait that long each. :data:`SWITCH_INTERVAL_S` shortens the turns.
+- **One-time costs paid at start.** The first torch optimizer imports the parts of torch it needs
+  (seconds), the first backward pass starts autograd's engine, and the map's C++ kernels load. Done at
+  start, none of it delays the first frame.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import torch
+
+#: the interpreter's switch interval in an engine process (Python's default: 0.005 s)
+SWITCH_INTERVAL_S = 0.0005
+
+
+def prepare_engine_process(grid_backend: str = "auto") -> float:
+    """Shorten the GIL's turns and pay the engine's one-time costs (module docstring), the kernels' load
+    as :func:`neb_slam_core.scene._ext.prepare` does for ``grid_backend``; returns the seconds spent. Safe
+    to call more than once."""
+    t0 = time.perf_counter()
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    p = torch.zeros(2, requires_grad=True)
+    optimizer = torch.optim.Adam([p], lr=1e-3, fused=True)  # the engine's optimizers are fused Adams
+    (p * p).sum().backward()
+    optimizer.step()
+    from neb_slam_core.scene import _ext
+
+    _ext.prepare(grid_backend)
+    return time.perf_counter() - t0

@@ -89,10 +89,25 @@ def test_floor_gravity_without_a_floor_falls_back_to_the_extrinsic_with_a_warnin
 
 
 class _Node:
-    """Stands in for a node: its publishers record what they publish."""
+    """Stands in for a node: its publishers record what they publish, its subscriptions are kept by topic,
+    its logger keeps its warnings."""
 
     def __init__(self):
         self.sent: dict[str, list] = {}
+        self.subscriptions: dict[str, object] = {}
+        self.warnings: list[str] = []
+
+    def get_logger(self):
+        node = self
+
+        class Logger:
+            def warning(self, text):
+                node.warnings.append(text)
+
+        return Logger()
+
+    def create_subscription(self, msg_type, topic, callback, qos):
+        self.subscriptions[topic] = callback
 
     def create_publisher(self, msg_type, topic, qos):
         node = self
@@ -149,3 +164,40 @@ def test_without_an_odom_frame_map_to_base_goes_out_and_the_camera_frame_paramet
     quiet = _Node()
     frames.TfOutput(quiet, frames.FrameOptions(publish_tf=False)).frame(P0, None, 7, "x")
     assert quiet.sent == {}
+
+
+def test_with_the_robots_own_odometry_only_map_to_odom_goes_out_and_absorbs_its_drift():
+    from geometry_msgs.msg import TransformStamped
+    from tf2_msgs.msg import TFMessage
+
+    from neb_slam_ros.conversions import header
+
+    opt = frames.FrameOptions(odom_from_tf=True)
+    node = _Node()
+    tf = frames.TfOutput(node, opt)
+
+    def base(t: float) -> np.ndarray:  # the base in map: turning about z and moving, uniformly in t
+        return make_pose(_rot("z", 2.0 * t), np.array([0.1 * t, 0.02 * t, 0.0]))
+
+    ns = 10_000_000  # t = 1: 10 ms
+    D = make_pose(_rot("z", 7.0), np.array([0.3, -0.1, 0.0]))  # the robot's odometry drifted by D
+    for t in (5, 15, 25):  # its odom -> base, stamped between the frames
+        T = invert(D) @ base(t)
+        msg = frames.transform_msg(T, t * ns, "odom", "base_link")
+        other = TransformStamped(header=header(t * ns, "map"), child_frame_id="odom")  # ours: ignored
+        node.subscriptions["/tf"](TFMessage(transforms=[msg, other]))
+    T_base_cam = opt.T_base_cam
+    tf.frame(base(10) @ T_base_cam, None, 10 * ns, "cam")
+    tf.frame(base(20) @ T_base_cam, base(10) @ T_base_cam, 20 * ns, "cam")
+    for msg in node.sent["/tf"]:
+        (m,) = msg.transforms
+        assert (m.header.frame_id, m.child_frame_id) == ("map", "odom")
+        np.testing.assert_allclose(_tf(m), D, atol=1e-9)  # interpolated odometry at 10 and 20
+    assert len(node.sent["/tf"]) == 2 and node.warnings == []
+    tf.frame(base(100) @ T_base_cam, base(20) @ T_base_cam, 100 * ns, "cam")  # 0.75 s from odometry: nothing
+    assert len(node.sent["/tf"]) == 2 and f"no odom -> base_link on /tf near frame {100 * ns}" in node.warnings[0]
+
+
+def test_odom_from_tf_needs_an_odom_frame():
+    with pytest.raises(ParameterError, match="parameter odom_frame:"):
+        frames.FrameOptions(odom_from_tf=True, odom_frame="").check()

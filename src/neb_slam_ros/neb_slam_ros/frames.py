@@ -16,12 +16,18 @@ the robot's first heading, origin at the first position of ``base_frame``. :func
 :class:`TfOutput` publishes, stamped with each frame's image stamp, ``map -> odom -> base`` on ``/tf`` (with
 ``odom_frame`` empty: ``map -> base``) and ``base -> camera`` once on ``/tf_static``. The split is rtabmap's:
 ``odom -> base`` is continuous (each frame adds the motion tracking measured since the previous frame),
-``map -> odom`` takes the jumps of map optimisation and loop closure. The camera frame is
-``camera_frame``, or the colour image's ``header.frame_id``.
+``map -> odom`` takes the jumps of map optimisation and loop closure. A robot with its own odometry
+publishes ``odom -> base`` itself: with ``odom_from_tf`` the node publishes only ``map -> odom``, the
+transform that makes the robot's ``odom -> base`` at the image's stamp (interpolated between the two
+nearest on ``/tf``) end where tracking put the base. The camera frame is ``camera_frame``, or the colour
+image's ``header.frame_id``.
 """
 
 from __future__ import annotations
 
+import bisect
+import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -58,6 +64,7 @@ class FrameOptions:
     gravity: str = "extrinsic"
     gravity_vector: tuple = (0.0, 1.0, 0.0)
     publish_tf: bool = True
+    odom_from_tf: bool = False
 
     PARAMETER_DOCS = {
         "map_frame": "frame of the published poses, path, blocks and mesh: level, z up (REP-103)",
@@ -71,6 +78,8 @@ class FrameOptions:
         "depth image's floor), vector (gravity_vector)",
         "gravity_vector": "with gravity vector: down in the first camera's optical frame",
         "publish_tf": "publish map -> odom -> base on /tf and base -> camera on /tf_static",
+        "odom_from_tf": "the robot's odometry publishes odom_frame -> base_frame on /tf: publish only map -> odom, "
+        "from it",
     }
 
     def check(self) -> None:
@@ -84,6 +93,9 @@ class FrameOptions:
             "base_to_camera",
             "7 numbers x y z qx qy qz qw with a non-zero quaternion",
             self.base_to_camera,
+        )
+        require(
+            not self.odom_from_tf or bool(self.odom_frame), "odom_frame", "a frame with odom_from_tf", self.odom_frame
         )
         require(self.gravity in GRAVITY_SOURCES, "gravity", f"one of {', '.join(GRAVITY_SOURCES)}", self.gravity)
         g = np.asarray(self.gravity_vector, dtype=np.float64)
@@ -130,6 +142,67 @@ def transform_msg(T: np.ndarray, stamp_ns: int, parent: str, child: str) -> Tran
     )
 
 
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, w: float) -> np.ndarray:
+    """The pose ``w`` of the way from ``T0`` to ``T1`` (0: ``T0``, 1: ``T1``): translation linear,
+    rotation along the shortest arc."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    out = np.eye(4)
+    out[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]])))([w]).as_matrix()[0]
+    out[:3, 3] = (1.0 - w) * T0[:3, 3] + w * T1[:3, 3]
+    return out
+
+
+class OdometryBuffer:
+    """The ``parent -> child`` transforms that arrive on ``/tf`` (another node's odometry), by stamp: the
+    newest ``capacity``. :meth:`at` interpolates between the two around a stamp, at most ``max_gap_s``
+    apart, or takes the nearest within ``tolerance_s``."""
+
+    def __init__(
+        self, parent: str, child: str, capacity: int = 2000, max_gap_s: float = 0.5, tolerance_s: float = 0.05
+    ):
+        self.parent, self.child = parent, child
+        self.capacity = capacity
+        self.max_gap_ns = int(max_gap_s * 1e9)
+        self.tolerance_ns = int(tolerance_s * 1e9)
+        self._stamps: list[int] = []
+        self._poses: list[np.ndarray] = []
+        self._lock = threading.Lock()
+
+    def add(self, msg: TFMessage) -> None:
+        for t in msg.transforms:
+            if t.header.frame_id != self.parent or t.child_frame_id != self.child:
+                continue
+            v, q = t.transform.translation, t.transform.rotation
+            T = pose_from_tum(np.array([v.x, v.y, v.z, q.x, q.y, q.z, q.w]))
+            stamp = conversions.stamp_ns(t)
+            with self._lock:
+                i = bisect.bisect_left(self._stamps, stamp)
+                if i < len(self._stamps) and self._stamps[i] == stamp:
+                    self._poses[i] = T
+                    continue
+                self._stamps.insert(i, stamp)
+                self._poses.insert(i, T)
+                if len(self._stamps) > self.capacity:
+                    del self._stamps[0], self._poses[0]
+
+    def at(self, stamp_ns: int) -> np.ndarray | None:
+        with self._lock:
+            i = bisect.bisect_left(self._stamps, stamp_ns)
+            if i < len(self._stamps) and self._stamps[i] == stamp_ns:
+                return self._poses[i]
+            if 0 < i < len(self._stamps):
+                s0, s1 = self._stamps[i - 1], self._stamps[i]
+                if s1 - s0 <= self.max_gap_ns:
+                    return interpolate_pose(self._poses[i - 1], self._poses[i], (stamp_ns - s0) / (s1 - s0))
+            near = [j for j in (i - 1, i) if 0 <= j < len(self._stamps)]
+            if near:
+                j = min(near, key=lambda j: abs(self._stamps[j] - stamp_ns))
+                if abs(self._stamps[j] - stamp_ns) <= self.tolerance_ns:
+                    return self._poses[j]
+        return None
+
+
 class TfOutput:
     """``/tf`` per frame and ``/tf_static`` once, for ``node`` (see the module docstring).
 
@@ -147,6 +220,12 @@ class TfOutput:
         self.T_odom_base: np.ndarray | None = None
         #: the camera's frame: ``camera_frame``, else the first image's frame id (odometry's child frame)
         self.camera_frame = opt.camera_frame or "camera"
+        self.odometry: OdometryBuffer | None = None
+        self._logger = node.get_logger()
+        self._warned = -float("inf")
+        if opt.publish_tf and opt.odom_from_tf:
+            self.odometry = OdometryBuffer(opt.odom_frame, opt.base_frame)
+            node.create_subscription(TFMessage, "/tf", self.odometry.add, qos.events(100))
 
     def frame(self, T_map_cam: np.ndarray, T_map_cam_prev: np.ndarray | None, stamp_ns: int, camera_frame: str) -> None:
         """Publish the transforms of a frame at ``T_map_cam`` (``T_map_cam_prev``: the previous frame now,
@@ -164,6 +243,19 @@ class TfOutput:
             msg = transform_msg(self.T_base_cam, stamp_ns, self.opt.base_frame, self.camera_frame)
             self.pub_static.publish(TFMessage(transforms=[msg]))
         o = self.opt
+        if self.odometry is not None:
+            T_odom_base = self.odometry.at(stamp_ns)
+            if T_odom_base is None:
+                if time.monotonic() - self._warned > 5.0:
+                    self._warned = time.monotonic()
+                    self._logger.warning(
+                        f"odom_from_tf: no {o.odom_frame} -> {o.base_frame} on /tf near frame {stamp_ns}: "
+                        f"{o.map_frame} -> {o.odom_frame} not published for it"
+                    )
+                return
+            msg = transform_msg(T_map_base @ invert(T_odom_base), stamp_ns, o.map_frame, o.odom_frame)
+            self.pub.publish(TFMessage(transforms=[msg]))
+            return
         if o.odom_frame:
             T_map_odom = T_map_base @ invert(self.T_odom_base)
             transforms = [

@@ -300,6 +300,10 @@ class BlockMap(nn.Module):
                 continue
             axes = [torch.arange(int(a), int(b), device=dev) for a, b in zip(i0, i1, strict=True)]
             idx = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+            grid = block.observed
+            idx = idx[~grid[idx[:, 0], idx[:, 1], idx[:, 2]]]  # a voxel once seen stays seen: test the rest
+            if not len(idx):
+                continue
             centres = block.min_corner.to(dev) + (idx.to(torch.float32) + 0.5) * vox
             cam = centres @ R_cw.T + t_cw
             zc = cam[:, 2]
@@ -312,8 +316,7 @@ class BlockMap(nn.Module):
             d[inside] = depth_t[py[inside], px[inside]]
             seen = inside & (d > 0) & (zc <= d + truncation_m + 0.5 * np.sqrt(3.0) * vox)
             hit = idx[seen]
-            grid = block.observed
-            if bool((~grid[hit[:, 0], hit[:, 1], hit[:, 2]]).any()):
+            if len(hit):
                 grid[hit[:, 0], hit[:, 1], hit[:, 2]] = True
                 grown.add(block.block_id)
         return grown

@@ -10,8 +10,9 @@ pytestmark = [pytest.mark.ros, pytest.mark.filterwarnings("ignore::DeprecationWa
 
 frames = pytest.importorskip("neb_slam_ros.frames")
 
-from neb_slam_core.geometry.se3 import invert, make_pose, pose_from_tum, pose_to_tum  # noqa: E402
+from neb_slam_core.geometry.se3 import invert, make_pose, pose_to_tum  # noqa: E402
 from neb_slam_core.types import Intrinsics, RgbdFrame  # noqa: E402
+from neb_slam_ros import conversions  # noqa: E402
 from neb_slam_ros.params import ParameterError  # noqa: E402
 
 
@@ -33,8 +34,7 @@ T_WORLD_CAM0 = make_pose(_rot("y", 30.0) @ _rot("x", -12.0), np.array([0.4, -1.0
 
 
 def _tf(msg) -> np.ndarray:
-    t, q = msg.transform.translation, msg.transform.rotation
-    return pose_from_tum(np.array([t.x, t.y, t.z, q.x, q.y, q.z, q.w]))
+    return conversions.transform_from_msg(msg)
 
 
 @pytest.mark.parametrize(
@@ -101,7 +101,7 @@ class _Node:
         node = self
 
         class Logger:
-            def warning(self, text):
+            def warning(self, text, **kwargs):
                 node.warnings.append(text)
 
         return Logger()
@@ -183,7 +183,7 @@ def test_with_the_robots_own_odometry_only_map_to_odom_goes_out_and_absorbs_its_
     D = make_pose(_rot("z", 7.0), np.array([0.3, -0.1, 0.0]))  # the robot's odometry drifted by D
     for t in (5, 15, 25):  # its odom -> base, stamped between the frames
         T = invert(D) @ base(t)
-        msg = frames.transform_msg(T, t * ns, "odom", "base_link")
+        msg = conversions.transform_msg(T, t * ns, "odom", "base_link")
         other = TransformStamped(header=header(t * ns, "map"), child_frame_id="odom")  # ours: ignored
         node.subscriptions["/tf"](TFMessage(transforms=[msg, other]))
     T_base_cam = opt.T_base_cam

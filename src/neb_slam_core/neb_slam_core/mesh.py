@@ -132,7 +132,7 @@ class _Lattice:
         idx = np.argwhere(evaluate)
         pts = (idx + lo) * v
         sdf = np.full(shape, np.nan, dtype=np.float32)
-        sdf_vals, valid = _query_sdf(block_map, pts, cfg.batch_points)
+        sdf_vals, valid = query_sdf(block_map, pts, cfg.batch_points)
         sdf[tuple(idx.T)] = np.where(valid, sdf_vals, np.nan)
         known = np.isfinite(sdf)
         # a cell is meshed only when all 8 of its corners carry a value
@@ -203,7 +203,8 @@ def _owner(points: np.ndarray, centres: np.ndarray, half: float) -> np.ndarray:
     return owner
 
 
-def _query_sdf(block_map: BlockMap, points: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:
+def query_sdf(block_map: BlockMap, points: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:
+    """The map's SDF (truncation units) and validity at ``(N, 3)`` world points, in batches of ``batch``."""
     dev = block_map.device
     sdf, valid = [], []
     for s in range(0, len(points), batch):

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .geometry.se3 import invert
+from .mesh import query_sdf
 from .scene.block_map import BlockMap
 
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100
@@ -57,7 +59,7 @@ def occupancy_slice(
     centres = block_map.centres().detach().cpu().double().numpy().reshape(-1, 3)
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
     corners_world = (centres[:, None, :] + half * signs[None]).reshape(-1, 3)
-    T_level_world = np.linalg.inv(T)
+    T_level_world = invert(T)
     corners = corners_world @ T_level_world[:3, :3].T + T_level_world[:3, 3]
     lo = np.floor(corners[:, :2].min(axis=0) / resolution_m) * resolution_m
     hi = np.ceil(corners[:, :2].max(axis=0) / resolution_m) * resolution_m
@@ -67,13 +69,9 @@ def occupancy_slice(
     gx, gy = np.meshgrid(xs, ys)  # (h, w): row = y
     level = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, height_m)], axis=1)
     world = level @ T[:3, :3].T + T[:3, 3]
+    sdf, valid = query_sdf(block_map, world, batch_points)
+    seen = block_map.observed(torch.as_tensor(world, dtype=torch.float32, device=block_map.device)).cpu().numpy()
+    known = valid & seen
     cells = np.full(len(world), UNKNOWN, dtype=np.int8)
-    dev = block_map.device
-    for s in range(0, len(world), batch_points):
-        p = torch.as_tensor(world[s : s + batch_points], dtype=torch.float32, device=dev)
-        q = block_map.query(p, with_colour=False)
-        known = (q.valid & block_map.observed(p)).cpu().numpy()
-        sdf_m = q.sdf.cpu().numpy() * truncation_m
-        part = cells[s : s + batch_points]
-        part[known] = np.where(sdf_m[known] <= occupied_m, OCCUPIED, FREE)
+    cells[known] = np.where(sdf[known] * truncation_m <= occupied_m, OCCUPIED, FREE)
     return OccupancySlice(cells.reshape(h, w), (float(lo[0]), float(lo[1])), resolution_m, height_m)

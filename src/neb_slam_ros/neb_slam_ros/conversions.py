@@ -10,13 +10,13 @@ import array
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Twist, Vector3
+from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, TransformStamped, Twist, Vector3
 from nav_msgs.msg import Odometry, Path
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from neb_slam_core.geometry.se3 import invert, pose_to_tum
+from neb_slam_core.geometry.se3 import invert, pose_from_tum, pose_to_tum
 from neb_slam_core.io.bag import decode_depth_m, decode_rgb, intrinsics_from_camera_info
 from neb_slam_core.io.bag import pose_from_msg as bag_pose_from_msg
 from neb_slam_core.types import Intrinsics, RgbdFrame
@@ -127,7 +127,23 @@ def pose_from_msg(msg: PoseStamped, topic: str) -> np.ndarray:
         raise InputError(topic, str(exc)) from None
 
 
+def transform_from_msg(msg) -> np.ndarray:
+    """geometry_msgs/TransformStamped -> ``(4, 4)`` pose of the child frame in the parent frame."""
+    v, q = msg.transform.translation, msg.transform.rotation
+    return pose_from_tum(np.array([v.x, v.y, v.z, q.x, q.y, q.z, q.w]))
+
+
 # ---------------------------------------------------------------------------------------------- output
+
+
+def transform_msg(T: np.ndarray, ns: int, parent: str, child: str) -> TransformStamped:
+    """``(4, 4)`` pose of ``child`` in ``parent`` -> geometry_msgs/TransformStamped stamped ``ns``."""
+    tx, ty, tz, qx, qy, qz, qw = (float(v) for v in pose_to_tum(T))
+    return TransformStamped(
+        header=header(ns, parent),
+        child_frame_id=child,
+        transform=Transform(translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+    )
 
 
 def _bytes(a: np.ndarray) -> array.array:

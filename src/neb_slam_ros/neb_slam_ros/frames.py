@@ -27,16 +27,14 @@ from __future__ import annotations
 
 import bisect
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from geometry_msgs.msg import Quaternion, Transform, TransformStamped, Vector3
 from tf2_msgs.msg import TFMessage
 
 from neb_slam_core.geometry.gravity import floor_down, level_frame
-from neb_slam_core.geometry.se3 import invert, pose_from_tum, pose_to_tum
+from neb_slam_core.geometry.se3 import invert, pose_from_tum
 from neb_slam_core.types import RgbdFrame
 from neb_slam_ros import conversions, qos
 from neb_slam_ros.params import require
@@ -133,15 +131,6 @@ def map_alignment(
     return level_frame(down_world, T_world_base0[:3, 0], T_world_base0[:3, 3])
 
 
-def transform_msg(T: np.ndarray, stamp_ns: int, parent: str, child: str) -> TransformStamped:
-    tx, ty, tz, qx, qy, qz, qw = (float(v) for v in pose_to_tum(T))
-    return TransformStamped(
-        header=conversions.header(stamp_ns, parent),
-        child_frame_id=child,
-        transform=Transform(translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
-    )
-
-
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, w: float) -> np.ndarray:
     """The pose ``w`` of the way from ``T0`` to ``T1`` (0: ``T0``, 1: ``T1``): translation linear,
     rotation along the shortest arc."""
@@ -173,8 +162,7 @@ class OdometryBuffer:
         for t in msg.transforms:
             if t.header.frame_id != self.parent or t.child_frame_id != self.child:
                 continue
-            v, q = t.transform.translation, t.transform.rotation
-            T = pose_from_tum(np.array([v.x, v.y, v.z, q.x, q.y, q.z, q.w]))
+            T = conversions.transform_from_msg(t)
             stamp = conversions.stamp_ns(t)
             with self._lock:
                 i = bisect.bisect_left(self._stamps, stamp)
@@ -222,7 +210,6 @@ class TfOutput:
         self.camera_frame = opt.camera_frame or "camera"
         self.odometry: OdometryBuffer | None = None
         self._logger = node.get_logger()
-        self._warned = -float("inf")
         if opt.publish_tf and opt.odom_from_tf:
             self.odometry = OdometryBuffer(opt.odom_frame, opt.base_frame)
             node.create_subscription(TFMessage, "/tf", self.odometry.add, qos.events(100))
@@ -240,28 +227,27 @@ class TfOutput:
         if self.pub is None:
             return
         if first:
-            msg = transform_msg(self.T_base_cam, stamp_ns, self.opt.base_frame, self.camera_frame)
+            msg = conversions.transform_msg(self.T_base_cam, stamp_ns, self.opt.base_frame, self.camera_frame)
             self.pub_static.publish(TFMessage(transforms=[msg]))
         o = self.opt
         if self.odometry is not None:
             T_odom_base = self.odometry.at(stamp_ns)
             if T_odom_base is None:
-                if time.monotonic() - self._warned > 5.0:
-                    self._warned = time.monotonic()
-                    self._logger.warning(
-                        f"odom_from_tf: no {o.odom_frame} -> {o.base_frame} on /tf near frame {stamp_ns}: "
-                        f"{o.map_frame} -> {o.odom_frame} not published for it"
-                    )
+                self._logger.warning(
+                    f"odom_from_tf: no {o.odom_frame} -> {o.base_frame} on /tf near frame {stamp_ns}: "
+                    f"{o.map_frame} -> {o.odom_frame} not published for it",
+                    throttle_duration_sec=5.0,
+                )
                 return
-            msg = transform_msg(T_map_base @ invert(T_odom_base), stamp_ns, o.map_frame, o.odom_frame)
+            msg = conversions.transform_msg(T_map_base @ invert(T_odom_base), stamp_ns, o.map_frame, o.odom_frame)
             self.pub.publish(TFMessage(transforms=[msg]))
             return
         if o.odom_frame:
             T_map_odom = T_map_base @ invert(self.T_odom_base)
             transforms = [
-                transform_msg(T_map_odom, stamp_ns, o.map_frame, o.odom_frame),
-                transform_msg(self.T_odom_base, stamp_ns, o.odom_frame, o.base_frame),
+                conversions.transform_msg(T_map_odom, stamp_ns, o.map_frame, o.odom_frame),
+                conversions.transform_msg(self.T_odom_base, stamp_ns, o.odom_frame, o.base_frame),
             ]
         else:
-            transforms = [transform_msg(T_map_base, stamp_ns, o.map_frame, o.base_frame)]
+            transforms = [conversions.transform_msg(T_map_base, stamp_ns, o.map_frame, o.base_frame)]
         self.pub.publish(TFMessage(transforms=transforms))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from neb_slam_core.geometry.rays import backproject_depth
 from neb_slam_core.types import Intrinsics
 
 
@@ -54,15 +55,11 @@ def floor_down(
     ``min_fraction`` of the points. Its inliers are fitted again by least squares (the smallest singular
     vector of the centred points). A table top passes as well as the floor: both are level.
     """
-    depth = np.asarray(depth_m, dtype=np.float64)
-    v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
-    if len(u) < 3:
+    pts = backproject_depth(np.asarray(depth_m), intrinsics)
+    if len(pts) < 3:
         return None
     rng = np.random.default_rng(seed)
-    pick = rng.choice(len(u), size=min(n_points, len(u)), replace=False)
-    u, v = u[pick], v[pick]
-    z = depth[v, u]
-    pts = np.stack([(u - intrinsics.cx) / intrinsics.fx * z, (v - intrinsics.cy) / intrinsics.fy * z, z], axis=1)
+    pts = pts[rng.choice(len(pts), size=min(n_points, len(pts)), replace=False)]
     up = np.asarray(up_prior, dtype=np.float64)
     up = up / np.linalg.norm(up)
     cos_tilt = np.cos(np.deg2rad(max_tilt_deg))

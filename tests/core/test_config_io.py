@@ -416,3 +416,12 @@ def test_config_from_dict_still_builds_sub_configs():
     assert block == BlockConfig(edge_m=4.0, grid=HashGridConfig(log2_hashmap_size=12))
     with pytest.raises(ConfigError, match=r"^block\.grid\.size: unknown parameter"):
         config_from_dict(BlockConfig, {"grid": {"size": 12}}, "block")
+
+
+def test_the_prediction_is_one_of_two():
+    assert load_config("live").tracking.prediction == "features"
+    assert load_config("tum").tracking.prediction == "motion"
+    with pytest.raises(ConfigError, match=r"tracking\.prediction"):
+        load_config("tum", ["tracking.prediction=orb"])
+    with pytest.raises(ConfigError, match=r"live\.background_nice"):
+        load_config("tum", ["live.background_nice=20"])

@@ -1,8 +1,12 @@
 """The process preparation every engine process runs before its first frame."""
 
+import os
 import sys
+import threading
 
-from neb_slam_core.engine_process import SWITCH_INTERVAL_S, prepare_engine_process
+import pytest
+
+from neb_slam_core.engine_process import SWITCH_INTERVAL_S, lower_thread_priority, prepare_engine_process
 
 
 def test_prepare_shortens_the_gil_turns_and_can_run_twice():
@@ -14,3 +18,23 @@ def test_prepare_shortens_the_gil_turns_and_can_run_twice():
         assert sys.getswitchinterval() == SWITCH_INTERVAL_S
     finally:
         sys.setswitchinterval(before)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+def test_a_background_thread_is_niced_and_no_other():
+    main_tid = threading.get_native_id()
+    before = os.getpriority(os.PRIO_PROCESS, main_tid)
+    seen = {}
+
+    def background():
+        tid = threading.get_native_id()
+        start = os.getpriority(os.PRIO_PROCESS, tid)
+        seen["lowered"] = lower_thread_priority(5)
+        seen["delta"] = os.getpriority(os.PRIO_PROCESS, tid) - start
+        seen["unchanged"] = lower_thread_priority(0)
+
+    t = threading.Thread(target=background)
+    t.start()
+    t.join()
+    assert seen == {"lowered": True, "delta": min(5, 19 - before), "unchanged": False}
+    assert os.getpriority(os.PRIO_PROCESS, main_tid) == before

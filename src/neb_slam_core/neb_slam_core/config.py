@@ -257,6 +257,14 @@ class TrackingConfig:
     so that dropped or failed frames between them do not matter; at most ``max_extrapolation`` times
     their motion).
 
+    ``prediction`` (ours; ``motion``: the paper's constant velocity, by ``motion_model``): ``features``
+    starts tracking from the last tracked frame's pose moved by the relative pose from ORB matches
+    between the two frames (the loop detector's geometric check with the ``loop`` ORB and matching
+    settings, :class:`neb_slam_core.loop.motion.FeatureMotion`), and from the motion model's prediction
+    where that check fails. It costs an ORB extraction and a PnP per frame and keeps the prediction
+    within the tracker's basin when frames are far apart (a live engine that drops frames, abrupt turns
+    and stops).
+
     ``gn_stop_step_m`` 0.5 mm: the objective's minimum itself moves by millimetres between two draws of
     the ``n_rays`` pixels, so converging much further than that buys nothing but steps.
 
@@ -292,6 +300,7 @@ class TrackingConfig:
     gn_stop_step_m: float = 5e-4
     motion_model: str = "frames"
     max_extrapolation: float = 4.0
+    prediction: str = "motion"
     coarse_rays: int = 0
     coarse_stop_step_m: float = 2e-3
     relocalise: bool = False
@@ -408,13 +417,17 @@ class LiveConfig:
     busy instead of competing for both); the ROS nodes apply it too. ``max_gap_s``: the engine tracks
     the newest frame that arrived, but none more than this after the last processed frame (0: the newest,
     however far): a frame far ahead of the last pose lies outside the tracker's basin, so after a wait
-    (the first map) the engine catches up in steps instead of jumping.
+    (the first map) the engine catches up in steps instead of jumping. ``background_nice``: the mapping
+    and loop threads (and the ROS ``mapper`` and ``loop_closer`` nodes' engine threads) run this much
+    nicer than tracking (0: as nice as it), so that tracking keeps a core when all are busy
+    (:func:`neb_slam_core.engine_process.lower_thread_priority`).
     """
 
     first_iterations: int = 30
     chunk_iterations: int = 10
     torch_threads: int = 0
     max_gap_s: float = 0.0
+    background_nice: int = 0
 
 
 @dataclass(frozen=True)

@@ -50,6 +50,7 @@ PRESET_FOLDER = "configs"
 GRID_BACKENDS = ("auto", "fast", "reference")
 TRACKING_METHODS = ("adam", "gauss_newton")
 MOTION_MODELS = ("frames", "stamps")
+PREDICTIONS = ("motion", "features")
 
 _PRESET_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]*")
 _DOTTED_KEY = re.compile(r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*")
@@ -426,6 +427,7 @@ RULES: dict[str, Any] = {
     "tracking.gn_stop_step_m": _NON_NEGATIVE,
     "tracking.motion_model": _Choice(MOTION_MODELS),
     "tracking.max_extrapolation": _NON_NEGATIVE,
+    "tracking.prediction": _Choice(PREDICTIONS),
     "tracking.coarse_rays": _COUNT,
     "tracking.coarse_stop_step_m": _NON_NEGATIVE,
     "tracking.relocalise": _Bool(),
@@ -479,6 +481,7 @@ RULES: dict[str, Any] = {
     "live.chunk_iterations": _POSITIVE_INT,
     "live.torch_threads": _COUNT,
     "live.max_gap_s": _NON_NEGATIVE,
+    "live.background_nice": _Int(0, 19),
 }
 
 

@@ -11,11 +11,17 @@ Two things are done once, before the first frame arrives, by whoever owns the pr
 - **One-time costs paid at start.** The first torch optimizer imports the parts of torch it needs
   (seconds), the first backward pass starts autograd's engine, and the map's C++ kernels load. Done at
   start, none of it delays the first frame.
+
+And per thread, :func:`lower_thread_priority`: mapping and loop closure yield the CPU to tracking
+(``live.background_nice``), so that when every core is busy the thread that tracks the newest frame
+is the one that keeps running.
 """
 
 from __future__ import annotations
 
+import os
 import sys
+import threading
 import time
 
 import torch
@@ -38,3 +44,14 @@ def prepare_engine_process(grid_backend: str = "auto") -> float:
 
     _ext.prepare(grid_backend)
     return time.perf_counter() - t0
+
+
+def lower_thread_priority(nice: int) -> bool:
+    """Raise the calling thread's nice value by ``nice`` (at most to 19): the scheduler then gives a core
+    to the process' other threads first whenever they compete for it. Linux schedules threads one by
+    one, so this touches no other thread; elsewhere, or with ``nice`` 0, nothing is done (False)."""
+    if nice <= 0 or not sys.platform.startswith("linux"):
+        return False
+    tid = threading.get_native_id()
+    os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+    return True

@@ -20,8 +20,9 @@ Three threads share the work, each with its own state:
 It is the protocol of the ROS ``tracker`` / ``mapper`` / ``loop_closer`` nodes, in one process without
 serialisation. Three rules keep the camera from waiting:
 
-- the first frame's map is fitted with ``live.first_iterations`` map-only steps before the second frame
-  is tracked; the rest of ``mapping.first_iterations`` runs in the background;
+- the first frame's map is fitted with ``live.first_iterations`` map-only steps, on all of torch's
+  threads, before the second frame is tracked; the rest of ``mapping.first_iterations`` runs in the
+  background;
 - keyframes that queued up while the mapper was busy are integrated together, with one mapping step for
   all of them, so the mapping lag stays bounded by one step's worth of keyframes;
 - a loop correction moves the keyframe poses at once; its two-stage re-optimisation runs in chunks of
@@ -32,7 +33,9 @@ The order of events depends on the machine's speed, so a run is not reproducible
 deterministic engine is :class:`~neb_slam_core.slam.Slam`.
 
 Threads: ``live.torch_threads`` (the ``live`` preset: 1) sets torch's intra-op threads in each of the
-three threads, so that on two cores the tracker and the mapper each keep one busy.
+three threads, so that on two cores the tracker and the mapper each keep one busy, and the mapping and
+loop threads run ``live.background_nice`` nicer than the tracker, so that the tracker keeps its core
+when the loop thread wants one too.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ import numpy as np
 import torch
 
 from .config import SlamConfig
+from .engine_process import lower_thread_priority
 from .io.trajectory import Trajectory
 from .loop.closer import LoopCloser
 from .loop.correction import merge_correction
@@ -302,9 +306,15 @@ class LiveSlam:
             s = h.step
             if s.first:
                 n0 = min(self.cfg.live.first_iterations, self.cfg.mapping.first_iterations)
-                step = self.backend.add_keyframe(
-                    s.frame, s.result.T_world_cam, s.result.frame_index, True, True, first_iterations=n0
-                )
+                # the tracker waits for this map (wait_for_map): it is fitted with the process' threads
+                torch.set_num_threads(self._caller_threads)
+                try:
+                    step = self.backend.add_keyframe(
+                        s.frame, s.result.T_world_cam, s.result.frame_index, True, True, first_iterations=n0
+                    )
+                finally:
+                    if self.cfg.live.torch_threads > 0:
+                        torch.set_num_threads(self.cfg.live.torch_threads)
                 changed |= step.changed_block_ids
                 rest = self.cfg.mapping.first_iterations - n0
                 if rest > 0:
@@ -401,6 +411,7 @@ class LiveSlam:
             if self.cfg.live.torch_threads > 0:
                 # OpenMP's thread count is per thread: a new thread starts from the process default
                 torch.set_num_threads(self.cfg.live.torch_threads)
+            lower_thread_priority(self.cfg.live.background_nice)  # the caller's thread tracks: it goes first
             try:
                 target()
             except Exception as exc:  # reported by close() and the next process(); the tracker goes on

@@ -34,11 +34,13 @@ import numpy as np
 import torch
 
 from .config import SlamConfig
-from .geometry.rays import backproject_depth
+from .geometry.rays import backproject_pixels
 from .geometry.rectify import Rectifier
 from .geometry.se3 import interpolate_correction, invert, orthonormalize
 from .io.trajectory import Trajectory
 from .loop.closer import LoopCloser
+from .loop.detector import FrameFeatures
+from .loop.motion import FeatureMotion
 from .mapping.keyframes import Keyframe, KeyframeStore
 from .mapping.mapper import Mapper
 from .render.rays import all_pixels
@@ -264,6 +266,10 @@ class Frontend:
         self.relocaliser = relocaliser
         #: the last frame failed tracking and none has passed since
         self.lost = False
+        # tracking.prediction features: the last tracked frame's index and features, which the next
+        # frame is matched against
+        self._motion = FeatureMotion(cfg.loop) if cfg.tracking.prediction == "features" else None
+        self._reference: tuple[int, FrameFeatures] | None = None
 
     # ------------------------------------------------------------------ poses
 
@@ -336,8 +342,9 @@ class Frontend:
         if index == 0 and len(self.block_map) == 0:
             return self._first(frame, t_start)
 
-        T_pred = self.predict(frame.stamp_ns)
         t0 = time.perf_counter()
+        features = self.describe(frame)
+        T_pred = self.prediction(frame.stamp_ns, features)
         tracked = self.tracker.track(self.block_map, frame, T_pred)
         if self.cfg.tracking.relocalise and (self.lost or not self._passes(tracked)):
             tracked = self._relocalise(frame, T_pred, tracked)
@@ -352,6 +359,8 @@ class Frontend:
             self._tracked = (self._tracked + [index])[-2:]
         else:
             self._tracked = self._tracked[-1:]  # the motion before the loss is stale
+        if ok and features is not None:
+            self._reference = (index, features)
         T = tracked.T_world_cam if ok else T_pred
 
         # allocate (only from a trusted pose: a wrong one would put a block in the wrong place)
@@ -436,10 +445,32 @@ class Frontend:
         scale = (stamp_ns - last) / dt_prev if dt_prev > 0 else 1.0
         return orthonormalize(T1 @ scale_motion(invert(T2) @ T1, min(max(scale, 0.0), c.max_extrapolation)))
 
+    def describe(self, frame: RgbdFrame) -> FrameFeatures | None:
+        """What :meth:`prediction` matches of a rectified frame: its ORB features with
+        ``tracking.prediction`` ``features``, else None."""
+        return None if self._motion is None else self._motion.describe(frame)
+
+    def prediction(self, stamp_ns: int, features: FrameFeatures | None = None) -> np.ndarray:
+        """The pose tracking starts from for the next frame, stamped ``stamp_ns``, with ``features`` its
+        :meth:`describe`. ``tracking.prediction`` ``features``: the last tracked frame's (corrected) pose
+        moved by the relative pose of the two frames' ORB matches
+        (:class:`~neb_slam_core.loop.motion.FeatureMotion`), where the geometric check accepts the pair;
+        otherwise, and with ``motion``, the motion model's :meth:`predict`. The reference stays the last
+        tracked frame while tracking fails, so a frame after a loss is matched against the last good
+        view."""
+        if features is not None and self._reference is not None:
+            ref_index, ref_features = self._reference
+            T_ref_cur = self._motion.relative_pose(features, ref_features)
+            if T_ref_cur is not None:
+                return orthonormalize(self.pose_of(ref_index) @ T_ref_cur)
+        return self.predict(stamp_ns)
+
     # ------------------------------------------------------------------ steps
 
     def _first(self, frame: RgbdFrame, t_start: float) -> FrontendStep:
         T = self.T_world_first
+        if self._motion is not None:
+            self._reference = (0, self._motion.describe(frame))
         t0 = time.perf_counter()
         new_block, tau = self._allocate(frame, T)
         timings = StepTimings(allocate_ms=1e3 * (time.perf_counter() - t0))
@@ -521,11 +552,12 @@ class Frontend:
         return stamp_ns - last_ns >= every_s * 1e9
 
     def _allocate(self, frame: RgbdFrame, T: np.ndarray):
-        pts = backproject_depth(frame.depth_m, frame.intrinsics, T)
-        if len(pts) == 0:
+        v, u = np.nonzero(frame.depth_m > 0)
+        if len(u) == 0:
             return None, 0.0
-        n = min(self.cfg.block.alloc_n_points, len(pts))
-        pts = pts[self.rng.choice(len(pts), n, replace=False)]
+        pick = self.rng.choice(len(u), min(self.cfg.block.alloc_n_points, len(u)), replace=False)
+        u, v = u[pick], v[pick]
+        pts = backproject_pixels(u, v, frame.depth_m[v, u], frame.intrinsics, T)
         s = self.cfg.render.sampling
         ids = self.block_map.blocks_in_frustum(T, frame.intrinsics, s.near_m, s.far_m)
         alloc = self.block_map.allocate_if_needed(

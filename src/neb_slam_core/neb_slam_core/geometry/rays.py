@@ -46,9 +46,15 @@ def backproject_depth(
     (world frame when ``T_world_cam`` is given, camera frame otherwise), float64."""
     d = depth_m[::stride, ::stride]
     v, u = np.nonzero(d > 0)
-    z = d[v, u].astype(np.float64)
-    u = u * stride
-    v = v * stride
+    return backproject_pixels(u * stride, v * stride, d[v, u], intrinsics, T_world_cam)
+
+
+def backproject_pixels(
+    u: np.ndarray, v: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray | None = None
+) -> np.ndarray:
+    """Pixels ``(u, v)`` (integer columns and rows, pixel centres) at depths ``depth_m`` -> ``(K, 3)``
+    points (world frame when ``T_world_cam`` is given, camera frame otherwise), float64."""
+    z = np.asarray(depth_m, dtype=np.float64)
     k = intrinsics
     pts = np.stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z], axis=1)
     if T_world_cam is not None:

@@ -49,6 +49,30 @@ DEPTH_EDGE_RATIO = 0.05
 
 
 @dataclass(frozen=True)
+class FrameFeatures:
+    """What the geometric check needs of one frame: ORB keypoints and descriptors (``N``), the
+    ``(N,)`` float32 depth at each keypoint (0 where missing or on a depth edge) and the pinhole camera.
+    :class:`KeyframeFeatures` carries the same three fields."""
+
+    features: OrbFeatures
+    keypoint_depth_m: np.ndarray
+    intrinsics: Intrinsics
+
+
+def orb_params(cfg: LoopConfig) -> OrbParams:
+    """The ORB settings of ``cfg``."""
+    return OrbParams(cfg.n_features, cfg.orb_scale_factor, cfg.orb_levels, cfg.fast_threshold, cfg.min_image_width_px)
+
+
+def frame_features(
+    extractor: OrbExtractor, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics
+) -> FrameFeatures:
+    """ORB features of one image with their keypoints' depths."""
+    feats = extractor(rgb)
+    return FrameFeatures(feats, keypoint_depths(depth_m, feats.keypoints_px), intrinsics)
+
+
+@dataclass(frozen=True)
 class KeyframeFeatures:
     """What the detector keeps of one keyframe.
 
@@ -266,9 +290,7 @@ class LoopDetector:
     def __init__(self, cfg: LoopConfig, vocabulary: Vocabulary | None = None):
         self.cfg = cfg
         self.vocabulary = vocabulary if vocabulary is not None else Vocabulary.load(cfg.vocabulary)
-        self.extractor = OrbExtractor(
-            OrbParams(cfg.n_features, cfg.orb_scale_factor, cfg.orb_levels, cfg.fast_threshold, cfg.min_image_width_px)
-        )
+        self.extractor = OrbExtractor(orb_params(cfg))
         self.database = KeyframeDatabase(self.vocabulary.n_words)
         self._keyframes: list[KeyframeFeatures] = []  # insertion order = temporal order
         self._position: dict[int, int] = {}
@@ -283,14 +305,14 @@ class LoopDetector:
         self, keyframe_id: int, stamp_ns: int, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics
     ) -> KeyframeFeatures:
         """ORB features, keypoint depths and BoW vector of one frame (nothing is stored)."""
-        feats = self.extractor(rgb)
+        f = frame_features(self.extractor, rgb, depth_m, intrinsics)
         return KeyframeFeatures(
             int(keyframe_id),
             int(stamp_ns),
-            feats,
-            keypoint_depths(depth_m, feats.keypoints_px),
+            f.features,
+            f.keypoint_depth_m,
             intrinsics,
-            self.vocabulary.transform(feats.descriptors),
+            self.vocabulary.transform(f.features.descriptors),
         )
 
     def add(self, keyframe: KeyframeFeatures) -> None:
@@ -378,67 +400,74 @@ class LoopDetector:
         return verified
 
     def verify(self, query: KeyframeFeatures, cand: KeyframeFeatures) -> GeometricCheck:
-        """Geometric check of ``cand`` for ``query``: matches, depth back-projection, PnP RANSAC."""
-        cfg = self.cfg
-        with_depth = np.flatnonzero(cand.keypoint_depth_m > 0)
-        if len(with_depth) < max(4, cfg.min_inliers):
-            return GeometricCheck(False, None, 0, 0, f"{len(with_depth)} candidate keypoints with depth")
-        qi, ti = match_descriptors(
-            query.features.descriptors, cand.features.descriptors[with_depth], cfg.match_ratio, cfg.max_match_distance
-        )
-        n_matches = len(qi)
-        if n_matches < max(4, cfg.min_inliers):
-            return GeometricCheck(False, None, n_matches, 0, f"{n_matches} matches")
-        ci = with_depth[ti]
-        points_cand = backproject(cand.features.keypoints_px[ci], cand.keypoint_depth_m[ci], cand.intrinsics)
-        pixels_query = query.features.keypoints_px[qi].astype(np.float64)
-        ok, rvec, tvec, pnp_inliers = cv2.solvePnPRansac(
-            points_cand,
-            pixels_query,
-            query.intrinsics.K,
-            None,
-            iterationsCount=cfg.ransac_iterations,
-            reprojectionError=cfg.reprojection_error_px,
-            confidence=0.999,
-            flags=cv2.SOLVEPNP_EPNP,
-        )
-        if not ok or pnp_inliers is None or len(pnp_inliers) < 3:
-            return GeometricCheck(False, None, n_matches, 0, "PnP RANSAC found no pose")
-        T_query_cand = make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))  # x_query = R x_cand + t
+        """Geometric check of ``cand`` for ``query`` (:func:`geometric_check`)."""
+        return geometric_check(query, cand, self.cfg)
 
-        # Depth check and refinement. From pixels alone, points at similar depths leave a sideways
-        # translation and a rotation that cancel each other (40 cm and 5 degrees at 4.5 m on the
-        # synthetic 160x120 loop, with every inlier a true match); the query's own depth settles it.
-        # The PnP pose is refined on its inliers by both residuals at once (pixels in the query, and
-        # 3D distance to the query's back-projected point in units of the depth tolerance), robustly:
-        # real depth is not consistent enough between frames for a pure 3D fit (Kinect: 2-3 cm at
-        # 1.5 m), simulated pixels at 160x120 not precise enough for a pure PnP.
-        depth_q = query.keypoint_depth_m[qi].astype(np.float64)
-        points_query = backproject(pixels_query, depth_q, query.intrinsics)
-        tolerance_m = cfg.max_point_error_m * np.maximum(1.0, depth_q)
-        start = pnp_inliers.reshape(-1)
-        T_query_cand = refine_pose(
-            T_query_cand,
-            points_cand[start],
-            pixels_query[start],
-            points_query[start],
-            tolerance_m[start],
-            query.intrinsics,
-            cfg.reprojection_error_px,
+
+def geometric_check(
+    query: FrameFeatures | KeyframeFeatures, cand: FrameFeatures | KeyframeFeatures, cfg: LoopConfig
+) -> GeometricCheck:
+    """Geometric check of ``cand`` for ``query`` (the module docstring): matches, the candidate's depth
+    back-projection, PnP RANSAC, refinement with the query's depth; ``T_cand_query`` when accepted."""
+    with_depth = np.flatnonzero(cand.keypoint_depth_m > 0)
+    if len(with_depth) < max(4, cfg.min_inliers):
+        return GeometricCheck(False, None, 0, 0, f"{len(with_depth)} candidate keypoints with depth")
+    qi, ti = match_descriptors(
+        query.features.descriptors, cand.features.descriptors[with_depth], cfg.match_ratio, cfg.max_match_distance
+    )
+    n_matches = len(qi)
+    if n_matches < max(4, cfg.min_inliers):
+        return GeometricCheck(False, None, n_matches, 0, f"{n_matches} matches")
+    ci = with_depth[ti]
+    points_cand = backproject(cand.features.keypoints_px[ci], cand.keypoint_depth_m[ci], cand.intrinsics)
+    pixels_query = query.features.keypoints_px[qi].astype(np.float64)
+    ok, rvec, tvec, pnp_inliers = cv2.solvePnPRansac(
+        points_cand,
+        pixels_query,
+        query.intrinsics.K,
+        None,
+        iterationsCount=cfg.ransac_iterations,
+        reprojectionError=cfg.reprojection_error_px,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_EPNP,
+    )
+    if not ok or pnp_inliers is None or len(pnp_inliers) < 3:
+        return GeometricCheck(False, None, n_matches, 0, "PnP RANSAC found no pose")
+    T_query_cand = make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))  # x_query = R x_cand + t
+
+    # Depth check and refinement. From pixels alone, points at similar depths leave a sideways
+    # translation and a rotation that cancel each other (40 cm and 5 degrees at 4.5 m on the
+    # synthetic 160x120 loop, with every inlier a true match); the query's own depth settles it.
+    # The PnP pose is refined on its inliers by both residuals at once (pixels in the query, and
+    # 3D distance to the query's back-projected point in units of the depth tolerance), robustly:
+    # real depth is not consistent enough between frames for a pure 3D fit (Kinect: 2-3 cm at
+    # 1.5 m), simulated pixels at 160x120 not precise enough for a pure PnP.
+    depth_q = query.keypoint_depth_m[qi].astype(np.float64)
+    points_query = backproject(pixels_query, depth_q, query.intrinsics)
+    tolerance_m = cfg.max_point_error_m * np.maximum(1.0, depth_q)
+    start = pnp_inliers.reshape(-1)
+    T_query_cand = refine_pose(
+        T_query_cand,
+        points_cand[start],
+        pixels_query[start],
+        points_query[start],
+        tolerance_m[start],
+        query.intrinsics,
+        cfg.reprojection_error_px,
+    )
+    reproj, dist3 = pose_residuals(T_query_cand, points_cand, pixels_query, points_query, query.intrinsics)
+    # an inlier reprojects within the threshold and agrees with the query's depth: without that, a
+    # keypoint without depth in the query would count on its pixel alone
+    consistent = (reproj <= cfg.reprojection_error_px) & (depth_q > 0) & (dist3 <= tolerance_m)
+    n_inliers = int(consistent.sum())
+    n_checkable = int(np.count_nonzero(depth_q > 0))  # matches with depth on both sides
+    T_cand_query = invert(T_query_cand)
+    if n_inliers < cfg.min_inliers or n_inliers < cfg.min_inlier_ratio * n_checkable:
+        return GeometricCheck(
+            False,
+            T_cand_query,
+            n_matches,
+            n_inliers,
+            f"{n_inliers} inliers of {n_checkable} matches with depth in both frames",
         )
-        reproj, dist3 = pose_residuals(T_query_cand, points_cand, pixels_query, points_query, query.intrinsics)
-        # an inlier reprojects within the threshold and agrees with the query's depth: without that, a
-        # keypoint without depth in the query would count on its pixel alone
-        consistent = (reproj <= cfg.reprojection_error_px) & (depth_q > 0) & (dist3 <= tolerance_m)
-        n_inliers = int(consistent.sum())
-        n_checkable = int(np.count_nonzero(depth_q > 0))  # matches with depth on both sides
-        T_cand_query = invert(T_query_cand)
-        if n_inliers < cfg.min_inliers or n_inliers < cfg.min_inlier_ratio * n_checkable:
-            return GeometricCheck(
-                False,
-                T_cand_query,
-                n_matches,
-                n_inliers,
-                f"{n_inliers} inliers of {n_checkable} matches with depth in both frames",
-            )
-        return GeometricCheck(True, T_cand_query, n_matches, n_inliers)
+    return GeometricCheck(True, T_cand_query, n_matches, n_inliers)

@@ -35,7 +35,9 @@ def test_views_that_do_not_overlap_give_no_pose(loop_views):
     views, intr = loop_views
     motion = FeatureMotion(LoopConfig())
     (v0, T0), (v150, T150) = views[0], views[150]
-    assert motion.relative_pose(motion.describe(_frame(v150, intr, T150)), motion.describe(_frame(v0, intr, T0))) is None
+    assert (
+        motion.relative_pose(motion.describe(_frame(v150, intr, T150)), motion.describe(_frame(v0, intr, T0))) is None
+    )
 
 
 def test_tum_frames_a_third_of_a_second_apart(tum_dir):

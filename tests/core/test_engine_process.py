@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from neb_slam_core.engine_process import SWITCH_INTERVAL_S, lower_thread_priority, prepare_engine_process
+from neb_slam_core.engine_process import SWITCH_INTERVAL_S, lower_thread_priority, prepare_engine_process, usable_cores
 
 
 def test_prepare_shortens_the_gil_turns_and_can_run_twice():
@@ -38,3 +38,15 @@ def test_a_background_thread_is_niced_and_no_other():
     t.join()
     assert seen == {"lowered": True, "delta": min(5, 19 - before), "unchanged": False}
     assert os.getpriority(os.PRIO_PROCESS, main_tid) == before
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="the CPU affinity is a Linux call")
+def test_usable_cores_follow_the_affinity():
+    """A process pinned to one core has one usable core, whatever the machine has."""
+    before = os.sched_getaffinity(0)
+    assert usable_cores() == len(before)
+    try:
+        os.sched_setaffinity(0, {min(before)})
+        assert usable_cores() == 1
+    finally:
+        os.sched_setaffinity(0, before)

@@ -134,3 +134,30 @@ def test_keyframes_follow_the_stamps_when_every_s_is_set(frames):
     by_time = [r.frame_index for r in results if r.is_keyframe and r.new_block_id is None]
     assert by_time == [3, 6, 9], [(r.frame_index, r.is_keyframe, r.new_block_id) for r in results]
     assert all(r.mapped for r in results if r.is_keyframe)
+
+
+def test_background_refinement_advances_with_every_mapping_step(frames):
+    """Every frame a keyframe and none waiting for the mapper, so that keyframes are always queued: the rest
+    of the first map (170 of the ci budget's 200 steps, in 17 chunks of 10) still advances by one chunk with
+    each mapping step, whatever the machine's speed, instead of waiting for a moment without keyframes."""
+    cfg = load_config(
+        "ci",
+        overrides=[
+            "live.torch_threads=1",
+            "live.first_iterations=30",
+            "live.chunk_iterations=10",
+            "keyframes.every=1",
+            "loop.enabled=false",
+        ],
+    )
+    chunks_needed = (cfg.mapping.first_iterations - cfg.live.first_iterations) // cfg.live.chunk_iterations
+    assert chunks_needed == 17
+    slam = LiveSlam(cfg, frames[0].T_world_cam)
+    try:
+        results = [slam.process(f) for f in frames[:12]]
+        assert slam.wait_integrated(timeout_s=120.0)
+    finally:
+        slam.close()
+    assert slam.errors == [] and all(r.tracking_ok for r in results)
+    steps, chunks = slam.stats.mapping_steps, slam.stats.background_chunks
+    assert steps >= 2 and chunks >= min(steps, chunks_needed), (steps, chunks)

@@ -1,5 +1,5 @@
-"""The one-process ``slam`` node live over real DDS: a synthetic bag replayed at its recorded speed (30 Hz,
-no lockstep) while tracking, mapping and loop closure run beside each other. Tracking a frame takes
+"""The one-process ``slam`` node live over real DDS: a synthetic bag replayed without lockstep (at a quarter
+of its recorded 30 Hz) while tracking, mapping and loop closure run beside each other. Tracking a frame takes
 longer than a frame period, so frames are dropped and counted; every tracked pose carries its frame's
 stamp; the ATE over the tracked frames stays bounded; shutdown writes a complete run directory.
 
@@ -18,10 +18,12 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.filterwarnings("ign
 
 #: the small scene's loop over 8 s at 30 Hz: the camera moves 1.2 cm a frame, as in TUM fr1_xyz
 N_FRAMES = 240
-#: ATE bound over the tracked frames: half the ATE of a camera left at its first pose over this loop (about
-#: 19 cm, rigidly aligned): the tracked frames are registered to the map, not left at a prediction. How
+#: ATE bound over the tracked frames, as a share of the ATE of a camera left at its first pose over the same
+#: frames (rigidly aligned): the tracked frames are registered to the map, not left at a prediction. How
 #: close live tracking comes to the lockstep engine is what benchmarks/live.py measures.
-ATE_BOUND_CM = 10.0
+ATE_BOUND_OF_STILL = 0.5
+#: the most camera time between two tracked frames (live.max_gap_s)
+MAX_GAP_S = 0.1
 
 
 @pytest.fixture(scope="module")
@@ -39,23 +41,29 @@ def live_bag(tmp_path_factory) -> tuple[Path, list[int]]:
 
 
 def test_live_slam_drops_frames_and_tracks_the_rest(live_bag, ros_env, tmp_path):
-    from neb_slam_core.io.trajectory import read_tum_trajectory
+    from neb_slam_core.eval.trajectory_metrics import evaluate_ate
+    from neb_slam_core.io.trajectory import Trajectory, read_tum_trajectory
     from neb_slam_ros.suite import launch
 
     bag, stamps = live_bag
     out = tmp_path / "live"
-    # the live preset's engine options on the ci budget; the queue holds the whole replay, so that however
-    # slow the machine, the engine steps at most live.max_gap_s ahead (how far it falls behind is what
-    # the machine's speed changes)
+    # the live preset's prediction on the ci budget. The ci budget tracks a frame in about a second on two
+    # cores and maps in the time that leaves: from a first map fitted in full (the ci budget's 200 steps)
+    # and at most MAX_GAP_S between tracked frames (3.6 cm of this camera's motion), the map keeps up with
+    # the tracked frames on such a machine. The replay runs at a quarter of the recorded speed so that the
+    # engine tracks about 20 frames before the bag ends. The queue holds the whole replay, so that however
+    # slow the machine, the engine steps at most MAX_GAP_S ahead.
     live = {
         "live.torch_threads": 1,
-        "live.max_gap_s": 0.3,
+        "live.max_gap_s": MAX_GAP_S,
+        "live.first_iterations": 200,
+        "tracking.prediction": "features",
         "tracking.motion_model": "stamps",
         "tracking.max_extrapolation": 10.0,
         "keyframes.every_s": 0.15,
         "frame_queue": N_FRAMES,
     }
-    run = launch(bag, out, "ci", one_process=True, live=True, rate=1.0, env=ros_env, extra_params=live)
+    run = launch(bag, out, "ci", one_process=True, live=True, rate=0.25, env=ros_env, extra_params=live)
     logs = {k: p.read_text() for k, p in run.logs.items()}
     assert run.exit_codes == {"slam": 0}, logs
     assert "Traceback" not in logs["slam"], logs["slam"]
@@ -68,8 +76,11 @@ def test_live_slam_drops_frames_and_tracks_the_rest(live_bag, ros_env, tmp_path)
     assert len(est) == m["frames_tracked"] == m["n_frames"] == N_FRAMES - m["frames_dropped"] >= 3
     assert set(est.stamps_ns.tolist()) <= set(stamps) and est.stamps_ns[0] == stamps[0]
     steps_s = np.diff(est.stamps_ns) * 1e-9
-    assert np.all(steps_s > 0) and np.all(steps_s <= 0.3 + 1e-6), steps_s
-    assert m["ate_rmse_cm"] <= ATE_BOUND_CM, m["ate_rmse_cm"]
+    assert np.all(steps_s > 0) and np.all(steps_s <= MAX_GAP_S + 1e-6), steps_s
+    gt = read_tum_trajectory(out / "groundtruth.txt")
+    still = Trajectory(gt.stamps_ns, np.repeat(gt.poses[:1], len(gt), axis=0))
+    still_cm = 100 * evaluate_ate(still, gt).rmse_m
+    assert m["ate_rmse_cm"] <= ATE_BOUND_OF_STILL * still_cm, (m["ate_rmse_cm"], still_cm)
     # a complete run directory
     for name in (
         "trajectory.txt",

@@ -46,6 +46,13 @@ def prepare_engine_process(grid_backend: str = "auto") -> float:
     return time.perf_counter() - t0
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the platform reports it)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
 def lower_thread_priority(nice: int) -> bool:
     """Raise the calling thread's nice value by ``nice`` (at most to 19): the scheduler then gives a core
     to the process' other threads first whenever they compete for it. Linux schedules threads one by

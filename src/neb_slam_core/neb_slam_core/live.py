@@ -20,13 +20,14 @@ Three threads share the work, each with its own state:
 It is the protocol of the ROS ``tracker`` / ``mapper`` / ``loop_closer`` nodes, in one process without
 serialisation. Three rules keep the camera from waiting:
 
-- the first frame's map is fitted with ``live.first_iterations`` map-only steps, on all of torch's
-  threads, before the second frame is tracked; the rest of ``mapping.first_iterations`` runs in the
-  background;
+- the first frame's map is fitted with ``live.first_iterations`` map-only steps, on every core the
+  process may use, before the second frame is tracked; the rest of ``mapping.first_iterations`` runs in the
+  background, one chunk of ``live.chunk_iterations`` after each batch of keyframes (and while no
+  keyframe waits), so a steady stream of keyframes does not hold it back;
 - keyframes that queued up while the mapper was busy are integrated together, with one mapping step for
   all of them, so the mapping lag stays bounded by one step's worth of keyframes;
 - a loop correction moves the keyframe poses at once; its two-stage re-optimisation runs in chunks of
-  ``live.chunk_iterations`` between keyframes, and a correction that arrives while one is being worked
+  ``live.chunk_iterations`` in the same way, and a correction that arrives while one is being worked
   off replaces what is left of it.
 
 The order of events depends on the machine's speed, so a run is not reproducible to the bit; the
@@ -50,7 +51,7 @@ import numpy as np
 import torch
 
 from .config import SlamConfig
-from .engine_process import lower_thread_priority
+from .engine_process import lower_thread_priority, usable_cores
 from .io.trajectory import Trajectory
 from .loop.closer import LoopCloser
 from .loop.correction import merge_correction
@@ -284,7 +285,13 @@ class LiveSlam:
                     _Work("loop", self.cfg.loop.map_iterations, False),
                     _Work("loop", self.cfg.loop.joint_iterations, True, start),
                 ]
-            elif not handoffs and background:
+            if background:
+                # what this cycle integrated goes to the tracker first; then one chunk of the background work,
+                # in every cycle, so that a steady stream of keyframes cannot hold the first map's refinement
+                # (or a loop's re-optimisation) back for the whole run
+                if changed or unsent:
+                    self._hand_back(changed | unsent)
+                    changed, unsent = set(), set()
                 work = background[0]
                 n = min(live.chunk_iterations, work.iterations)
                 res = self.backend.mapper.optimise(n, optimise_poses=work.optimise_poses, fixed_until=work.fixed_until)
@@ -306,8 +313,9 @@ class LiveSlam:
             s = h.step
             if s.first:
                 n0 = min(self.cfg.live.first_iterations, self.cfg.mapping.first_iterations)
-                # the tracker waits for this map (wait_for_map): it is fitted with the process' threads
-                torch.set_num_threads(self._caller_threads)
+                # the tracker waits for this map (wait_for_map): it is fitted on every core the process may
+                # use, whatever thread count the caller (a ROS node's worker: live.torch_threads) runs with
+                torch.set_num_threads(usable_cores())
                 try:
                     step = self.backend.add_keyframe(
                         s.frame, s.result.T_world_cam, s.result.frame_index, True, True, first_iterations=n0

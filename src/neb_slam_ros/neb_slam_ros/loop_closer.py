@@ -54,6 +54,8 @@ class LoopCloserOptions:
 class LoopCloserNode(NebNode):
     """Detects loops among the keyframes and publishes their corrections; see the module docstring."""
 
+    background = True
+
     def __init__(self) -> None:
         super().__init__("loop_closer", LoopCloserOptions, join_timeout_s=60.0)
         # loop.enabled false: the node runs (a launch file need not change) but checks nothing

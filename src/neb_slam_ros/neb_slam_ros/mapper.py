@@ -77,6 +77,8 @@ class MapperOptions:
 class MapperNode(NebNode):
     """Integrates keyframes and optimises the map; see the module docstring."""
 
+    background = True
+
     def __init__(self) -> None:
         super().__init__("mapper", MapperOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/mapper-%Y%m%d-%H%M%S"))

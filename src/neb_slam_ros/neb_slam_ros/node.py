@@ -32,7 +32,7 @@ from typing import Any
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from neb_slam_core.engine_process import prepare_engine_process
+from neb_slam_core.engine_process import lower_thread_priority, prepare_engine_process
 from neb_slam_ros import NAMESPACE
 from neb_slam_ros.params import declare_config, declare_options
 
@@ -117,6 +117,10 @@ class NebNode(Node):
         join_timeout_s: how long :meth:`close` waits for the worker to finish what it is doing.
     """
 
+    #: the worker maps or closes loops: it runs ``live.background_nice`` nicer than the tracking
+    #: nodes' workers, so that tracking keeps a core when all are busy
+    background = False
+
     def __init__(
         self,
         name: str,
@@ -177,6 +181,8 @@ class NebNode(Node):
             import torch
 
             torch.set_num_threads(threads)
+        if self.background and self.cfg is not None:
+            lower_thread_priority(self.cfg.live.background_nice)
         self.work_loop()
 
     def work_loop(self) -> None:

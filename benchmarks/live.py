@@ -51,14 +51,6 @@ from common import REPO, TUM, record
 ENTRIES = ("one_process", "separate", "cli_live")
 
 
-def _in_repo(path: Path) -> Path:
-    """``path`` relative to the repository when it lies inside it, else as given."""
-    try:
-        return path.resolve().relative_to(REPO.resolve())
-    except ValueError:
-        return path
-
-
 def default_bag() -> Path:
     bag = REPO / ".cache" / "bags" / "fr1_xyz"
     if not bag.exists():
@@ -119,8 +111,7 @@ def figures_of(run_dir: Path, metrics: dict, live: bool) -> dict:
         "mapping_lag_max": metrics.get("mapping_lag_max"),
         "lag_trend": _lag_trend(metrics.get("mapping_lag_history", [])),
         "loops_applied": metrics.get("n_loops_applied"),
-        # relative to the repository when the run lies in it: the JSON is committed
-        "trajectory": str(_in_repo(run_dir / "trajectory.txt")),
+        "trajectory": str(run_dir / "trajectory.txt"),
     }
     out.update(_timing_figures(run_dir))
     return out
@@ -182,7 +173,7 @@ def main() -> None:
     args = p.parse_args()
     bag = args.bag or default_bag()
     out = args.out or REPO / "runs" / f"live-{time.strftime('%Y%m%d-%H%M%S')}"
-    figures: dict = {"bag": str(_in_repo(bag)), "config": args.config, "rate": args.rate, "cpus": os.cpu_count()}
+    figures: dict = {"bag": str(bag), "config": args.config, "rate": args.rate, "cpus": os.cpu_count()}
     per_entry: dict[str, list[dict]] = {e: [] for e in args.only}
     for r in range(args.runs):
         for entry in args.only:

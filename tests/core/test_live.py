@@ -1,6 +1,6 @@
 """The concurrent engine's parts: the motion scaled to a stamp, which frame an engine that fell behind
 tracks next, the stamp-based constant-velocity prediction, and ``LiveSlam`` end to end on the ``small``
-synthetic scene (every frame handed in, mapping and loop closure in their threads)."""
+synthetic scene (every frame handed in, mapping and loop closure in a child process or in threads)."""
 
 from __future__ import annotations
 
@@ -80,12 +80,16 @@ def frames(small_scene):
     return [ds[i] for i in range(30)]
 
 
-def test_live_slam_tracks_and_integrates_every_keyframe(frames):
-    """Through the threads, but each frame waits for the map updates of the keyframes before it and the
-    first map is fitted in full before the second frame: the hand-over of keyframes, map updates and
-    poses then reproduces the lockstep engine's accuracy (the live schedule itself depends on the
+@pytest.mark.parametrize("process", [True, False], ids=["mapping-process", "mapping-threads"])
+def test_live_slam_tracks_and_integrates_every_keyframe(frames, process):
+    """Through the mapping side (in a child process, or in threads), but each frame waits for the map
+    updates of the keyframes before it and the first map is fitted in full before the second frame: the
+    hand-over of keyframes, map updates and poses then reproduces the lockstep engine's accuracy, and the
+    tracker's copy of the map ends equal to the mapper's (the live schedule itself depends on the
     machine's speed; the ROS live test runs it)."""
-    cfg = load_config("ci", overrides=["live.torch_threads=1", "live.first_iterations=200"])
+    cfg = load_config(
+        "ci", overrides=["live.torch_threads=1", "live.first_iterations=200", f"live.mapping_process={process}"]
+    )
     assert cfg.mapping.first_iterations == 200
     threads = torch.get_num_threads()
     slam = LiveSlam(cfg, frames[0].T_world_cam)
@@ -101,10 +105,19 @@ def test_live_slam_tracks_and_integrates_every_keyframe(frames):
     assert slam.errors == []
     assert all(r.tracking_ok for r in results)
     # every keyframe the tracker made reached the mapper, and its final poses came back
-    assert len(slam.backend.keyframes) == len(slam.frontend.keyframe_poses) > 1
-    assert slam.stats.mapping_lag == 0 and slam.stats.mapping_steps == len(slam.backend.keyframes)
+    assert len(slam.keyframes) == len(slam.frontend.keyframe_poses) > 1
+    assert slam.stats.mapping_lag == 0 and slam.stats.mapping_steps == len(slam.keyframes)
     assert slam.stats.background_chunks == 0  # the first map was fitted in full: nothing left to refine
-    assert np.allclose(np.stack(slam.frontend.keyframe_poses), slam.backend.keyframes.poses())
+    assert np.allclose(np.stack(slam.frontend.keyframe_poses), slam.keyframes.poses())
+    # the map updates carried every change: the tracker's map is the mapper's
+    tracked, final = slam.frontend.block_map, slam.block_map
+    assert len(tracked) == len(final) > 0 and set(slam.block_revisions) == set(range(len(final)))
+    for a, b in zip(tracked.blocks, final.blocks):
+        assert torch.equal(a.grid.table, b.grid.table) and torch.equal(a.observed, b.observed)
+    assert torch.equal(
+        torch.nn.utils.parameters_to_vector(tracked.decoders.parameters()),
+        torch.nn.utils.parameters_to_vector(final.decoders.parameters()),
+    )
     gt = Trajectory(np.array([f.stamp_ns for f in frames]), np.stack([f.T_world_cam for f in frames]))
     est = slam.trajectory()
     assert np.array_equal(est.stamps_ns, gt.stamps_ns)

@@ -420,7 +420,9 @@ class LiveConfig:
     (the first map) the engine catches up in steps instead of jumping. ``background_nice``: the mapping
     and loop threads (and the ROS ``mapper`` and ``loop_closer`` nodes' engine threads) run this much
     nicer than tracking (0: as nice as it), so that tracking keeps a core when all are busy
-    (:func:`neb_slam_core.engine_process.lower_thread_priority`).
+    (:func:`neb_slam_core.engine_process.lower_thread_priority`). ``mapping_process``: mapping and loop
+    closure run in a child process (:class:`neb_slam_core.live_mapping.ProcessMapping`), so that they do not
+    take turns with tracking on one Python interpreter; False keeps them in threads of the tracker's process.
     """
 
     first_iterations: int = 30
@@ -428,6 +430,7 @@ class LiveConfig:
     torch_threads: int = 0
     max_gap_s: float = 0.0
     background_nice: int = 0
+    mapping_process: bool = True
 
 
 @dataclass(frozen=True)

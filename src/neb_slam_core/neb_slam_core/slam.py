@@ -773,6 +773,11 @@ class Slam:
         """World points of all keyframes' kept pixels (for mesh culling), float64 ``(K, 3)``."""
         return self.backend.observed_points(self.frontend.rng, max_points)
 
+    @property
+    def block_revisions(self) -> dict[int, int]:
+        """Per block id, how many optimisation calls changed its table (what a mesh re-extracts by)."""
+        return self.backend.mapper.revisions
+
     def set_keyframe_poses(self, poses: np.ndarray) -> None:
         """Correct the poses ``(K, 4, 4)`` of the first K keyframes (e.g. a loop closure); the frames
         kept relative to them move with them."""

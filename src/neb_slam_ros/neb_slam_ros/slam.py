@@ -2,8 +2,10 @@
 
 Runs the engine on the camera input: by default the live one (:class:`~neb_slam_core.live.LiveSlam`:
 tracking in the node's worker thread on the newest frame, within ``live.max_gap_s`` of the last processed
-one, mapping and loop closure in threads of their own), or with ``live:=false`` (and in lockstep replay)
-:class:`~neb_slam_core.slam.Slam`, every frame in the paper's order. It publishes what the separate
+one, mapping and loop closure beside it: in a child process with ``live.mapping_process``, started with the
+node so that its start is not the first frame's wait, or in threads of the node's process), or with
+``live:=false`` (and in lockstep replay) :class:`~neb_slam_core.slam.Slam`, every frame in the paper's
+order. It publishes what the separate
 ``tracker`` and ``mapper`` publish for other stacks: ``pose``, ``odometry``, ``path``, ``blocks`` and
 ``mesh`` (keyframes and map updates stay inside the process). With a ``bag`` parameter the process also
 runs ``bag_replay`` (its parameters: ``rate``, ``lockstep``, ``start``, ``count``, ``loop``) on the same
@@ -33,6 +35,7 @@ from rclpy.node import Node
 from neb_slam_core.eval.run_report import RunOutputOptions, write_run
 from neb_slam_core.io.run_dir import RunLog
 from neb_slam_core.live import LiveSlam
+from neb_slam_core.live_mapping import ProcessMapping
 from neb_slam_core.slam import Slam
 from neb_slam_core.types import RgbdFrame
 from neb_slam_ros._node_main import run_nodes
@@ -64,7 +67,7 @@ class SlamOptions:
     lockstep: bool = False
 
     PARAMETER_DOCS = {
-        "live": "tracking never waits: mapping and loop closure run in threads beside it and the newest frame "
+        "live": "tracking never waits: mapping and loop closure run beside it and the newest frame "
         "is tracked whenever the engine is free (false: every frame in the paper's order, as "
         "neb-slam run; lockstep with bag implies false)",
         "lockstep": "with bag: the in-process replay publishes the next frame after this one's pose (bag_replay's "
@@ -95,6 +98,8 @@ class SlamNode(NebNode):
         self._map = map_parameter(self.cfg, self.opt.map_file)  # checked at start, used at the first frame
         self.live = self.opt.live and not (self.opt.bag and self.opt.lockstep)
         self.slam: Slam | LiveSlam | None = None  # made at the first frame (its pose may come from a topic)
+        # the live engine's mapping process is started now: importing the engine takes seconds
+        self._mapping = ProcessMapping() if self.live and self.cfg.live.mapping_process else None
         self.frames_in = 0
         self.run_log = RunLog()
         self._t_first: float | None = None
@@ -118,7 +123,7 @@ class SlamNode(NebNode):
             block_map=lambda: None if self.slam is None else self.slam.block_map,
             observed_points=lambda: self.slam.observed_points(),
             write_map=lambda run_dir: run_dir.write_map(self.slam, self.run_log.frames),
-            block_revisions=lambda: self.slam.backend.mapper.revisions,
+            block_revisions=lambda: self.slam.block_revisions,
             topics=declare_options(self, MapTopicOptions),
             truncation_m=self.cfg.render.truncation_m,
         )
@@ -168,8 +173,11 @@ class SlamNode(NebNode):
                 self.get_logger().warning(
                     f"no pose on {self.input_opt.ground_truth_topic} near the first frame: starting from the identity"
                 )
-            engine = LiveSlam if self.live else Slam
-            self.slam, self._map = engine(self.cfg, gt, self._map), None
+            if self.live:
+                self.slam, self._mapping = LiveSlam(self.cfg, gt, self._map, self._mapping), None
+            else:
+                self.slam = Slam(self.cfg, gt, self._map)
+            self._map = None
             self._t_first = time.perf_counter()
             self._intrinsics = frame.intrinsics
         self.run_log.begin(frame)
@@ -209,6 +217,8 @@ class SlamNode(NebNode):
 
     def finish(self) -> None:
         """Write the run directory and publish the final mesh."""
+        if self._mapping is not None:  # started for an engine that never came
+            self._mapping.shutdown()
         if self.slam is None or self.slam.n_frames == 0:
             self.final_log("neb_slam slam stopped before any frame: nothing to write", "WARN")
             return

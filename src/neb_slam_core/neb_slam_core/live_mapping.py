@@ -1,0 +1,548 @@
+"""The mapping side of the live engine (:class:`~neb_slam_core.live.LiveSlam`): mapping and loop closure,
+in threads of the tracker's process or in a process of their own.
+
+:class:`MappingSide` holds the mapper (:class:`~neb_slam_core.slam.Backend`, over its own copy of the map)
+and the loop closer, each in a thread. Keyframes come in with :meth:`MappingSide.submit`; what goes back
+to the tracker leaves through one callback, as ``(kind, payload)`` messages:
+
+- ``"update"``: a :class:`~neb_slam_core.scene.map_update.MapUpdate` (the blocks a step changed, the
+  decoders, the keyframe poses), after every mapping step and every chunk of background work;
+- ``"loop"``: a :class:`~neb_slam_core.types.LoopEvent`, applied or not;
+- ``"progress"``: :class:`Progress`, after every update and every keyframe the loop closer checked;
+- ``"error"``: a thread failed (its name, the exception).
+
+Two transports carry them, with the same messages:
+
+- :class:`ThreadMapping`: the mapping side in the tracker's process; the callback is the tracker's.
+- :class:`ProcessMapping`: the mapping side in a child process (``live.mapping_process``), the messages
+  over a pipe. Python runs one thread of a process at a time (the GIL); the engine's threads run many
+  short torch operations each, so in one process they take turns on the interpreter and two cores stay
+  partly idle. A child process has an interpreter of its own: the tracker keeps one core, mapping and
+  loop closure the other. The child is started with ``spawn`` (a forked copy of a process that runs
+  torch's thread pools, or ROS's, is not safe) and imports the engine once, before the first frame.
+
+Three rules keep the camera from waiting (the tracker's side is in :mod:`neb_slam_core.live`):
+
+- the first frame's map is fitted with ``live.first_iterations`` map-only steps on every core the
+  process may use; the rest of ``mapping.first_iterations`` runs in the background, one chunk of
+  ``live.chunk_iterations`` after each mapping step (and while no keyframe waits);
+- keyframes that queued up while the mapper was busy are integrated together, with one mapping step for
+  all of them, so the mapping lag stays bounded by one step's worth of keyframes;
+- a loop correction moves the keyframe poses at once; its two-stage re-optimisation runs in chunks in the
+  same way, and a correction that arrives while one is being worked off replaces what is left of it.
+"""
+
+from __future__ import annotations
+
+import io
+import multiprocessing
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .config import SlamConfig
+from .engine_process import lower_thread_priority, prepare_engine_process, usable_cores
+from .loop.closer import LoopCloser
+from .loop.correction import merge_correction
+from .mapping.keyframes import KeyframeStore
+from .scene import _ext, map_update
+from .scene.block_map import BlockMap
+from .slam import Backend
+from .types import RgbdFrame
+
+Emit = Callable[[str, object], None]
+
+
+@dataclass
+class Handoff:
+    """A keyframe on its way from the tracker (plain arrays: it may cross a pipe).
+
+    Attributes:
+        frame: the keyframe as tracked (rectified).
+        T_world_cam: its tracked pose; frame_index: its index among the tracked frames.
+        keyframe_id: its id; map_now: a mapping step follows it; first: the run's first frame.
+        block_centres: every block the tracker has, ``(N, 3)`` (a block's id is its position).
+        keyframe_poses: the tracker's keyframe poses when it was made, ``(K, 4, 4)``.
+    """
+
+    frame: RgbdFrame
+    T_world_cam: np.ndarray
+    frame_index: int
+    keyframe_id: int
+    map_now: bool
+    first: bool
+    block_centres: np.ndarray
+    keyframe_poses: np.ndarray
+
+
+@dataclass
+class Progress:
+    """How far the mapping side is: keyframes ``integrated`` by the mapper and ``checked`` by the loop
+    closer, loop corrections waiting for the mapper (``pending``), mapping steps and background chunks."""
+
+    integrated: int = 0
+    checked: int = 0
+    pending: int = 0
+    mapping_steps: int = 0
+    background_chunks: int = 0
+
+
+@dataclass
+class _Work:
+    """Background map iterations: ``iterations`` steps, poses optimised or not, keyframes up to
+    ``fixed_until`` held."""
+
+    kind: str
+    iterations: int
+    optimise_poses: bool
+    fixed_until: int = 0
+
+
+class MappingSide:
+    """The mapper and loop-closer threads over ``block_map`` (the mapper's copy); messages to ``emit``
+    (module docstring). :meth:`close` ends both and returns the final map and keyframe store."""
+
+    def __init__(self, cfg: SlamConfig, block_map: BlockMap, emit: Emit):
+        self.cfg = cfg
+        self._emit_to = emit
+        self.backend = Backend(cfg, block_map)
+        self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled else None
+        # the loop thread adds keyframes to the closer's database while a lost tracker queries it
+        self._database_lock = threading.Lock()
+        self._cond = threading.Condition()
+        self._stopping = False  # no more keyframes: the loop thread ends once its queue is empty ...
+        self._mapper_stopping = False  # ... then the mapper, once it has integrated and corrected all
+        self._to_mapper: deque[Handoff] = deque()
+        self._to_loop: deque[Handoff] = deque()
+        self._corrections: list[tuple[int, int, np.ndarray]] = []  # (keyframe id, loop start id, poses)
+        self._version = 0
+        self._mapper_poses: np.ndarray | None = None  # its keyframe poses after its last step
+        self.progress = Progress()
+        self._mapper = threading.Thread(target=self._guard(self._map_loop), name="neb-slam-mapper", daemon=True)
+        self._mapper.start()
+        self._looper = None
+        if self.loop_closer is not None:
+            self._looper = threading.Thread(target=self._guard(self._loop_loop), name="neb-slam-loops", daemon=True)
+            self._looper.start()
+
+    # ------------------------------------------------------------------ the tracker's requests
+
+    def submit(self, handoff: Handoff) -> None:
+        """Queue a keyframe for the mapper (and the loop closer)."""
+        with self._cond:
+            self._to_mapper.append(handoff)
+            if self.loop_closer is not None:
+                self._to_loop.append(handoff)
+            self._cond.notify_all()
+
+    def relocalise(self, frame: RgbdFrame, poses: np.ndarray) -> list[np.ndarray]:
+        """Candidate poses of a lost frame from the keyframes the loop thread has added so far; ``poses``:
+        the tracker's keyframe poses (it has every keyframe, the loop thread may lag)."""
+        if self.loop_closer is None:
+            return []
+        with self._database_lock:
+            return self.loop_closer.relocalise(frame, poses)
+
+    def observed_points(self, seed: int, max_points: int) -> np.ndarray:
+        """World points of the keyframes' kept pixels (mesh culling): :meth:`Backend.observed_points`."""
+        return self.backend.observed_points(np.random.default_rng(seed), max_points)
+
+    def close(self, timeout_s: float) -> tuple[BlockMap, KeyframeStore]:
+        """Let the loop thread check the queued keyframes and the mapper integrate them (and apply the
+        corrections), stop both; background work that is left (the rest of a re-optimisation) is dropped."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        if self._looper is not None:
+            self._looper.join(max(0.0, deadline - time.monotonic()))
+        with self._cond:
+            self._mapper_stopping = True
+            self._cond.notify_all()
+        self._mapper.join(max(0.0, deadline - time.monotonic()))
+        return self.backend.block_map, self.backend.keyframes
+
+    # ------------------------------------------------------------------ messages
+
+    def _tell(self, kind: str | None = None, payload: object = None) -> None:
+        """Send a message (when ``kind`` is given) and the progress after it; called with the condition
+        held, so that messages leave in the order the state changed."""
+        if kind is not None:
+            self._emit_to(kind, payload)
+        self._emit_to("progress", Progress(**vars(self.progress)))
+
+    # ------------------------------------------------------------------ mapping (its own thread)
+
+    def _map_loop(self) -> None:
+        live = self.cfg.live
+        background: list[_Work] = []
+        unsent: set[int] = set()
+        while True:
+            with self._cond:
+                self._cond.wait_for(
+                    lambda background=background: (
+                        self._mapper_stopping or self._to_mapper or self._corrections or background
+                    )
+                )
+                if self._mapper_stopping and not self._to_mapper and not self._corrections:
+                    return
+                handoffs = list(self._to_mapper)
+                self._to_mapper.clear()
+                corrections, self._corrections = self._corrections, []
+            changed: set[int] = set()
+            if handoffs:
+                changed |= self._integrate(handoffs, unsent, background)
+                self.progress.mapping_steps += 1
+            if corrections:  # their keyframes are integrated: handed to the mapper before the loop thread
+                changed |= self._correct(corrections)
+                background[:] = [w for w in background if w.kind != "loop"]
+                start = corrections[-1][1]
+                background += [
+                    _Work("loop", self.cfg.loop.map_iterations, False),
+                    _Work("loop", self.cfg.loop.joint_iterations, True, start),
+                ]
+            if background:
+                # what this cycle integrated goes to the tracker first; then one chunk of the background work,
+                # in every cycle, so that a steady stream of keyframes cannot hold the first map's refinement
+                # (or a loop's re-optimisation) back for the whole run
+                if changed or unsent:
+                    self._hand_back(changed | unsent)
+                    changed, unsent = set(), set()
+                work = background[0]
+                n = min(live.chunk_iterations, work.iterations)
+                res = self.backend.mapper.optimise(n, optimise_poses=work.optimise_poses, fixed_until=work.fixed_until)
+                changed |= res.changed_block_ids
+                work.iterations -= n
+                if work.iterations <= 0:
+                    background.pop(0)
+                self.progress.background_chunks += 1
+            self._hand_back(changed | unsent)
+            unsent.clear()
+
+    def _integrate(self, handoffs: list[Handoff], unsent: set[int], background: list[_Work]) -> set[int]:
+        """Store the keyframes, create the blocks the tracker allocated, and map once for all of them."""
+        bm, changed = self.backend.block_map, set()
+        map_now = False
+        for h in handoffs:
+            for centre in h.block_centres[len(bm) :]:
+                unsent.add(bm.add_block(torch.as_tensor(centre, dtype=torch.float32)).block_id)
+            if h.first:
+                n0 = min(self.cfg.live.first_iterations, self.cfg.mapping.first_iterations)
+                # the tracker waits for this map: it is fitted on every core the process may use, whatever
+                # thread count the mapping thread runs with otherwise
+                torch.set_num_threads(usable_cores())
+                try:
+                    step = self.backend.add_keyframe(
+                        h.frame, h.T_world_cam, h.frame_index, True, True, first_iterations=n0
+                    )
+                finally:
+                    if self.cfg.live.torch_threads > 0:
+                        torch.set_num_threads(self.cfg.live.torch_threads)
+                changed |= step.changed_block_ids
+                rest = self.cfg.mapping.first_iterations - n0
+                if rest > 0:
+                    background.append(_Work("first", rest, False))
+            else:
+                step = self.backend.add_keyframe(h.frame, h.T_world_cam, h.frame_index, False)
+                changed |= step.changed_block_ids  # the blocks whose observed space grew
+                map_now = map_now or h.map_now
+        if map_now:
+            changed |= self.backend.mapper.optimise().changed_block_ids
+        return changed
+
+    def _correct(self, corrections: list[tuple[int, int, np.ndarray]]) -> set[int]:
+        """Move the keyframe poses by the loop corrections, in the order they came (each merged over the
+        poses the previous ones left); the re-optimisation is left to the background work."""
+        changed: set[int] = set()
+        for query_id, start_id, poses in corrections:
+            kfs = self.backend.keyframes
+            first = start_id + 1
+            if query_id < first:
+                continue
+            merged = merge_correction(kfs.poses(), first, poses[first : query_id + 1])
+            changed |= self.backend.correct_loop(merged, start_id, reoptimise=False).changed_block_ids
+        return changed
+
+    def _hand_back(self, block_ids: set[int]) -> None:
+        kfs = self.backend.keyframes
+        poses = kfs.poses() if len(kfs) else np.zeros((0, 4, 4))
+        update = snapshot(
+            self.backend.block_map,
+            block_ids,
+            self._version + 1,
+            poses,
+            np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64),
+        )
+        with self._cond:
+            self._version += 1
+            self._mapper_poses = poses
+            self.progress.integrated = len(kfs)
+            self.progress.pending = len(self._corrections)
+            self._tell("update", update)
+            self._cond.notify_all()
+
+    # ------------------------------------------------------------------ loop closure (its own thread)
+
+    def _loop_loop(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._stopping or self._to_loop)
+                if not self._to_loop:
+                    return
+                h = self._to_loop.popleft()
+                refined = self._mapper_poses
+            kid = h.keyframe_id
+            poses = h.keyframe_poses.copy()
+            if refined is not None:  # the mapper's poses where it has them, the tracker's after
+                poses[: min(len(refined), len(poses))] = refined[: len(poses)]
+            with self._database_lock:
+                self.loop_closer.add_keyframe(kid, h.frame)
+            event, corrected = self.loop_closer.close(kid, poses, h.frame)
+            with self._cond:
+                self.progress.checked = kid + 1
+                if event is not None and event.applied:
+                    self._corrections.append((kid, event.start_id, corrected))
+                    self.progress.pending = len(self._corrections)
+                    self._cond.notify_all()
+                self._tell(None if event is None else "loop", event)
+
+    # ------------------------------------------------------------------ threads
+
+    def _guard(self, target):
+        def run():
+            if self.cfg.live.torch_threads > 0:
+                # OpenMP's thread count is per thread: a new thread starts from the process default
+                torch.set_num_threads(self.cfg.live.torch_threads)
+            lower_thread_priority(self.cfg.live.background_nice)  # the tracker goes first
+            try:
+                target()
+            except Exception as exc:  # reported to the tracker; the other thread goes on
+                with self._cond:
+                    self._tell("error", f"{threading.current_thread().name}: {type(exc).__name__}: {exc}")
+                    self._cond.notify_all()
+
+        return run
+
+
+def snapshot(
+    block_map: BlockMap, block_ids, version: int, keyframe_poses: np.ndarray, keyframe_stamps_ns: np.ndarray
+) -> map_update.MapUpdate:
+    """A :class:`~neb_slam_core.scene.map_update.MapUpdate` of ``block_map`` in memory: copies of the tables
+    and observed-space records of ``block_ids``, of the decoders and of the keyframe poses, for another
+    thread (or process) to apply."""
+    blocks = []
+    for i in sorted(int(b) for b in block_ids):
+        block = block_map.blocks[i]
+        blocks.append(
+            map_update.BlockState(
+                i,
+                block.centre.detach().cpu().numpy().copy(),
+                block.grid.table.detach().cpu().reshape(-1).clone().numpy(),
+                map_update.pack_observed(block.observed),
+            )
+        )
+    decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().clone().numpy()
+    return map_update.MapUpdate(
+        version,
+        -1,
+        blocks,
+        decoders,
+        np.asarray(keyframe_stamps_ns, dtype=np.int64),
+        np.array(keyframe_poses, dtype=np.float64),
+    )
+
+
+# ---------------------------------------------------------------------- the two transports
+
+
+class ThreadMapping:
+    """The mapping side in the tracker's process: its threads call ``emit`` directly."""
+
+    def __init__(self, cfg: SlamConfig, block_map: BlockMap, emit: Emit):
+        # the C++ kernels (and what imports them lazily) are loaded before the threads start, which would
+        # otherwise race for a half-imported module
+        _ext.prepare(cfg.grid_backend)
+        self._side = MappingSide(cfg, block_map, emit)
+
+    def submit(self, handoff: Handoff) -> None:
+        self._side.submit(handoff)
+
+    def relocalise(self, frame: RgbdFrame, poses: np.ndarray) -> list[np.ndarray]:
+        return self._side.relocalise(frame, poses)
+
+    def observed_points(self, seed: int, max_points: int) -> np.ndarray:
+        return self._side.observed_points(seed, max_points)
+
+    def close(self, timeout_s: float) -> tuple[BlockMap, KeyframeStore]:
+        return self._side.close(timeout_s)
+
+
+def _to_bytes(obj) -> bytes:
+    # torch's own serialisation: tensors as bytes in the message (a pickled tensor would go through
+    # shared-memory handles, one file descriptor per storage)
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    return buf.getvalue()
+
+
+def _from_bytes(data: bytes):
+    return torch.load(io.BytesIO(data), weights_only=False)
+
+
+class ProcessMapping:
+    """The mapping side in a child process (module docstring). The constructor starts the child and
+    waits until it has imported the engine (seconds); :meth:`begin` hands it the configuration and the map
+    and connects the messages to ``emit`` (called from a reader thread of this process).
+
+    A process that may construct its live engine late (a ROS node, at its first frame) starts this
+    early, so that the import is not the first frame's wait."""
+
+    def __init__(self, start_timeout_s: float = 120.0):
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child_conn = ctx.Pipe()
+        self._process = ctx.Process(target=_serve, args=(child_conn,), name="neb-slam-mapping", daemon=True)
+        self._process.start()
+        child_conn.close()
+        if not self._conn.poll(start_timeout_s):
+            self._process.kill()
+            raise RuntimeError(f"the mapping process did not start within {start_timeout_s:g} s")
+        kind, payload = self._conn.recv()
+        if kind != "ready":
+            raise RuntimeError(f"the mapping process failed to start: {payload}")
+        self._send_lock = threading.Lock()
+        self._cond = threading.Condition()
+        self._replies: dict[int, object] = {}
+        self._calls = 0
+        self._final: bytes | None = None
+        self._gone: str | None = None
+        self._emit: Emit | None = None
+        self._reader: threading.Thread | None = None
+
+    def begin(self, cfg: SlamConfig, block_map: BlockMap, emit: Emit) -> None:
+        self._emit = emit
+        self._send(("begin", (cfg, _to_bytes(block_map))))
+        self._reader = threading.Thread(target=self._read, name="neb-slam-mapping-reader", daemon=True)
+        self._reader.start()
+
+    def _send(self, message) -> None:
+        with self._send_lock:
+            self._conn.send(message)
+
+    def _read(self) -> None:
+        while True:
+            try:
+                kind, payload = self._conn.recv()
+            except (EOFError, OSError):
+                self._process.join(5.0)
+                with self._cond:
+                    if self._final is None:
+                        self._gone = f"the mapping process ended (exit code {self._process.exitcode})"
+                        self._emit("error", self._gone)
+                    self._cond.notify_all()
+                return
+            if kind == "reply":
+                with self._cond:
+                    self._replies[payload[0]] = payload[1]
+                    self._cond.notify_all()
+            elif kind == "final":
+                with self._cond:
+                    self._final = payload
+                    self._cond.notify_all()
+            else:
+                self._emit(kind, payload)
+
+    def _call(self, name: str, *args):
+        with self._cond:
+            self._calls += 1
+            call_id = self._calls
+        self._send(("call", (call_id, name, args)))
+        with self._cond:
+            self._cond.wait_for(lambda: call_id in self._replies or self._gone is not None)
+            if call_id not in self._replies:
+                raise RuntimeError(self._gone)
+            value = self._replies.pop(call_id)
+        if isinstance(value, BaseException):
+            raise value
+        return value
+
+    def submit(self, handoff: Handoff) -> None:
+        self._send(("handoff", handoff))
+
+    def relocalise(self, frame: RgbdFrame, poses: np.ndarray) -> list[np.ndarray]:
+        return self._call("relocalise", frame, poses)
+
+    def observed_points(self, seed: int, max_points: int) -> np.ndarray:
+        return self._call("observed_points", seed, max_points)
+
+    def close(self, timeout_s: float) -> tuple[BlockMap, KeyframeStore]:
+        """Close the mapping side in the child (as :meth:`MappingSide.close`), take its final map and
+        keyframes, and end the child."""
+        try:
+            self._send(("close", timeout_s))
+        except (BrokenPipeError, OSError) as exc:
+            raise RuntimeError(f"the mapping process is gone: {self._gone or exc}") from exc
+        with self._cond:
+            self._cond.wait_for(lambda: self._final is not None or self._gone is not None, timeout_s + 60.0)
+            final = self._final
+        self._process.join(30.0)
+        if self._process.is_alive():
+            self._process.kill()
+        if self._reader is not None:
+            self._reader.join(5.0)
+        if final is None:
+            raise RuntimeError(self._gone or f"the mapping process sent no final map within {timeout_s:g} s")
+        return _from_bytes(final)
+
+    def shutdown(self) -> None:
+        """End the child without its final map (a process that never began a run)."""
+        if self._process.is_alive():
+            self._process.kill()
+        self._process.join(5.0)
+
+
+def _serve(conn) -> None:
+    """The child process: prepare the engine, then run one :class:`MappingSide` with the messages of the
+    pipe ``conn`` (``begin``, ``handoff``, ``call``, ``close``)."""
+    try:
+        prepare_engine_process()
+    except Exception as exc:
+        conn.send(("failed", f"{type(exc).__name__}: {exc}"))
+        return
+    conn.send(("ready", None))
+    send_lock = threading.Lock()
+
+    def emit(kind: str, payload: object) -> None:
+        with send_lock:
+            conn.send((kind, payload))
+
+    side: MappingSide | None = None
+    while True:
+        try:
+            kind, payload = conn.recv()
+        except (EOFError, OSError):  # the tracker's process is gone
+            return
+        if kind == "begin":
+            cfg, map_bytes = payload
+            if cfg.live.torch_threads > 0:
+                torch.set_num_threads(cfg.live.torch_threads)
+            _ext.prepare(cfg.grid_backend)
+            torch.manual_seed(cfg.seed)
+            side = MappingSide(cfg, _from_bytes(map_bytes), emit)
+        elif kind == "handoff":
+            side.submit(payload)
+        elif kind == "call":
+            call_id, name, args = payload
+            try:
+                value = getattr(side, name)(*args)
+            except Exception as exc:
+                value = RuntimeError(f"{name} in the mapping process: {type(exc).__name__}: {exc}")
+            emit("reply", (call_id, value))
+        elif kind == "close":
+            final = side.close(payload)
+            emit("final", _to_bytes(final))
+            return

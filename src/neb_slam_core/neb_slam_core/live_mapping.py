@@ -123,11 +123,11 @@ class MappingSide:
         self._version = 0
         self._mapper_poses: np.ndarray | None = None  # its keyframe poses after its last step
         self.progress = Progress()
-        self._mapper = threading.Thread(target=self._guard(self._map_loop), name="neb-slam-mapper", daemon=True)
+        self._mapper = threading.Thread(target=self._guard(self._map_loop, False), name="neb-slam-mapper", daemon=True)
         self._mapper.start()
         self._looper = None
         if self.loop_closer is not None:
-            self._looper = threading.Thread(target=self._guard(self._loop_loop), name="neb-slam-loops", daemon=True)
+            self._looper = threading.Thread(target=self._guard(self._loop_loop, True), name="neb-slam-loops", daemon=True)
             self._looper.start()
 
     # ------------------------------------------------------------------ the tracker's requests
@@ -182,6 +182,7 @@ class MappingSide:
         live = self.cfg.live
         background: list[_Work] = []
         unsent: set[int] = set()
+        niced = False
         while True:
             with self._cond:
                 self._cond.wait_for(
@@ -223,6 +224,10 @@ class MappingSide:
                 self.progress.background_chunks += 1
             self._hand_back(changed | unsent)
             unsent.clear()
+            if not niced:
+                # the first cycle (the first map, which the tracker waits for) ran at the tracker's priority
+                lower_thread_priority(live.background_nice)
+                niced = True
 
     def _integrate(self, handoffs: list[Handoff], unsent: set[int], background: list[_Work]) -> set[int]:
         """Store the keyframes, create the blocks the tracker allocated, and map once for all of them."""
@@ -313,12 +318,13 @@ class MappingSide:
 
     # ------------------------------------------------------------------ threads
 
-    def _guard(self, target):
+    def _guard(self, target, nice: bool):
         def run():
             if self.cfg.live.torch_threads > 0:
                 # OpenMP's thread count is per thread: a new thread starts from the process default
                 torch.set_num_threads(self.cfg.live.torch_threads)
-            lower_thread_priority(self.cfg.live.background_nice)  # the tracker goes first
+            if nice:  # the tracker goes first
+                lower_thread_priority(self.cfg.live.background_nice)
             try:
                 target()
             except Exception as exc:  # reported to the tracker; the other thread goes on

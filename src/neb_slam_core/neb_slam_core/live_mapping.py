@@ -127,7 +127,9 @@ class MappingSide:
         self._mapper.start()
         self._looper = None
         if self.loop_closer is not None:
-            self._looper = threading.Thread(target=self._guard(self._loop_loop, True), name="neb-slam-loops", daemon=True)
+            self._looper = threading.Thread(
+                target=self._guard(self._loop_loop, True), name="neb-slam-loops", daemon=True
+            )
             self._looper.start()
 
     # ------------------------------------------------------------------ the tracker's requests

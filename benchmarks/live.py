@@ -3,7 +3,7 @@
 Each run replays the bag at ``--rate`` (1.0: as recorded) into
 
 - ``one_process``: the ROS ``slam`` node (live: tracking in its worker thread, mapping and loop closure
-  in threads beside it), through ``neb_slam_ros.suite``;
+  in a child process beside it), through ``neb_slam_ros.suite``;
 - ``separate``: the ``tracker``, ``mapper`` and ``loop_closer`` nodes as separate processes over DDS
   (the tracker waits for no map update or loop verdict);
 - ``cli_live``: ``neb-slam run --live`` (the same concurrent engine with a simulated real-time clock over

@@ -4,6 +4,8 @@ synthetic scene (every frame handed in, mapping and loop closure in a child proc
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -174,3 +176,24 @@ def test_background_refinement_advances_with_every_mapping_step(frames):
     assert slam.errors == [] and all(r.tracking_ok for r in results)
     steps, chunks = slam.stats.mapping_steps, slam.stats.background_chunks
     assert steps >= 2 and chunks >= min(steps, chunks_needed), (steps, chunks)
+
+
+def test_a_mapping_process_that_dies_is_reported_not_waited_for(frames):
+    """The mapping process killed under the engine: the tracker's next frame fails with a message naming it,
+    nothing waits for it forever, and close() says the same."""
+    cfg = load_config("ci", overrides=["live.first_iterations=5", "loop.enabled=false"])
+    assert cfg.live.mapping_process
+    slam = LiveSlam(cfg, frames[0].T_world_cam)
+    slam.process(frames[0])
+    assert slam.wait_integrated(timeout_s=120.0)
+    slam._mapping._process.kill()
+    deadline = time.monotonic() + 60.0
+    while not slam.errors and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert slam.errors and "mapping process ended" in slam.errors[0]
+    assert not slam.wait_integrated(timeout_s=1.0)
+    with pytest.raises(RuntimeError, match="mapping process ended"):
+        slam.process(frames[1])
+    with pytest.raises(RuntimeError, match="mapping process"):
+        slam.close(timeout_s=10.0)
+    assert slam.n_frames == 1 and len(slam.trajectory()) == 1

@@ -28,7 +28,7 @@ ground-truth mesh is given with --gt-mesh or the input folder holds the mesh.ply
 (both meshes culled to what the ground-truth cameras saw).
 
 Live (--live): a simulated real-time camera over the dataset. Frames arrive at their stamps (--rate
-scales the clock); the concurrent engine (``neb_slam_core.live``: mapping and loop closure in threads of
+scales the clock); the concurrent engine (``neb_slam_core.live``: mapping and loop closure in a process of
 their own) tracks the newest frame whenever it is free (at most ``live.max_gap_s`` after the last
 processed one), and the frames before it are dropped. The run directory then holds the tracked frames
 only, and metrics.json adds frames in, frames dropped, tracked frames per second and the mapping lag.

@@ -1,6 +1,7 @@
 """The camera input's frame queue as the live engine uses it: which frames a choice keeps, drops and
-counts, and the bound that drops the oldest. The queue is exercised directly (``_enqueue`` is what the
-image callbacks call), on a stand-in node that only records the subscriptions."""
+counts, and the bound (the oldest dropped, or for a live engine the frames kept spread over a wait). The
+queue is exercised directly (``_enqueue`` is what the image callbacks call), on a stand-in node that only
+records the subscriptions."""
 
 from __future__ import annotations
 
@@ -72,3 +73,29 @@ def test_a_full_queue_drops_its_oldest_frame_with_a_warning():
     assert [f.stamp_ns for f in inp._queue] == [20, 30] and inp.n_dropped == 1
     assert inp.node.warned and "behind the input" in inp.node.warned[0]
     assert inp.drop_queued() == 2 and inp.n_dropped == 3
+
+
+def test_a_live_queue_keeps_its_frames_spread_over_a_wait():
+    """A live engine's queue while frames arrive every 10 ns after the engine took the frame of stamp 0:
+    each overflow drops the frame whose neighbours lie closest (the oldest of equals, never the newest).
+    Hand-worked with a queue of 3 for arrivals 10..80 (gap left by each candidate, the drop):
+    [10,20,30,40] gaps 20,20,20 -> 10; [20,30,40,50] 30,20,20 -> 30; [20,40,50,60] 40,30,20 -> 50;
+    [20,40,60,70] 40,40,30 -> 60; [20,40,70,80] 40,50,40 -> 20; leaving [40, 70, 80]."""
+    inp = _input(frame_queue=3)
+    inp.thin = True
+    inp._enqueue(_frame(0))
+    assert inp.pop().stamp_ns == 0
+    for s in range(10, 81, 10):
+        inp._enqueue(_frame(s))
+    assert [f.stamp_ns for f in inp._queue] == [40, 70, 80]
+    assert inp.n_dropped == 5 and "spread" in inp.node.warned[1]  # the second drop, of 30
+    # a long wait: the engine catches up from 0 in steps of at most 60 where the oldest-first queue of 5
+    # would keep only 160..200 and jump by 160
+    inp = _input(frame_queue=5)
+    inp.thin = True
+    inp._enqueue(_frame(0))
+    inp.pop()
+    for s in range(10, 201, 10):
+        inp._enqueue(_frame(s))
+    stamps = [f.stamp_ns for f in inp._queue]
+    assert len(stamps) == 5 and stamps[-1] == 200 and max(np.diff([0, *stamps])) <= 60, stamps

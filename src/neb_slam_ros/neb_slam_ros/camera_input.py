@@ -42,8 +42,9 @@ class InputOptions:
         "depth_scale": "metres per unit of 16UC1/mono16 depth images (32FC1 is metres)",
         "sync_slop_s": "colour and depth are paired by stamp: exact, or nearest within this",
         "reliable_inputs": "camera subscriptions reliable (lossless replay) instead of sensor-data QoS",
-        "frame_queue": "frames kept while the engine is busy (older ones are dropped, with a warning); a live "
-        "engine catching up after a wait tracks from these (live.max_gap_s)",
+        "frame_queue": "frames kept while the engine is busy (beyond it one is dropped, with a warning: the "
+        "oldest, or for a live engine the one whose neighbours lie closest in time); a live engine catching "
+        "up after a wait tracks from these (live.max_gap_s)",
         "ground_truth_topic": "PoseStamped topic with the camera's ground truth (e.g. ground_truth/pose): the "
         "first frame starts from its pose; empty: from the identity",
         "warn_period_s": "throttle of repeated input warnings",
@@ -79,18 +80,28 @@ class InputWarnings:
 
 class CameraInput:
     """Subscribes the camera topics on ``node`` and queues every usable frame for the node's worker thread:
-    at most ``frame_queue`` of them, the oldest dropped with a counted warning when the worker falls
-    behind. The queue is guarded by ``cond`` (the node's condition variable, notified on each frame); the
+    at most ``frame_queue`` of them, one dropped with a counted warning when the worker falls behind.
+
+    Which one: an engine that processes every frame in order (``thin`` False) loses the oldest. A live
+    engine (``thin``) catches up after a wait in steps of at most ``live.max_gap_s`` from the last frame it
+    processed, so the queue keeps its frames spread over the wait: it drops the frame whose neighbours
+    (for the oldest: the last frame taken) lie closest in time, the oldest of equals, never the newest. A
+    wait of any length then leaves frames at even steps from where the engine stopped to now, where
+    dropping the oldest would leave only the last ``frame_queue`` frames and a jump to them.
+
+    The queue is guarded by ``cond`` (the node's condition variable, notified on each frame); the
     worker takes frames with :meth:`pop` while holding it. Ground-truth poses, when
     ``ground_truth_topic`` is set, are kept by stamp for :meth:`ground_truth_near`."""
 
     HELD_FOR_CAMERA_INFO = 3
 
-    def __init__(self, node: Node, opt: InputOptions, cond: threading.Condition):
+    def __init__(self, node: Node, opt: InputOptions, cond: threading.Condition, thin: bool = False):
         self.node = node
         self.opt = opt
+        self.thin = thin
         self._cond = cond
         self._queue: deque[RgbdFrame] = deque()
+        self._last_taken_ns: int | None = None  # stamp of the last frame the engine took
         self.n_dropped = 0
         self.warnings = InputWarnings(node.get_logger(), opt.warn_period_s)
         self.topics = tuple(node.resolve_topic_name(t) for t in ("rgb/image", "depth/image", "rgb/camera_info"))
@@ -115,14 +126,24 @@ class CameraInput:
         with self._cond:
             self._queue.append(frame)
             if len(self._queue) > self.opt.frame_queue:
-                self._queue.popleft()
+                i = self._to_drop()
+                del self._queue[i]
                 self.n_dropped += 1
+                which = "oldest queued frame" if i == 0 else "a queued frame (the queue keeps them spread)"
                 self.warnings.warn(
                     "queue",
-                    f"{self.node.get_name()} is behind the input: oldest queued frame "
-                    f"dropped ({self.n_dropped} dropped)",
+                    f"{self.node.get_name()} is behind the input: {which} dropped ({self.n_dropped} dropped)",
                 )
             self._cond.notify_all()
+
+    def _to_drop(self) -> int:
+        """The index of the queued frame a full queue drops (class docstring)."""
+        if not self.thin or len(self._queue) < 3:
+            return 0
+        stamps = np.array([f.stamp_ns for f in self._queue], dtype=np.int64)
+        before = np.concatenate([[stamps[0] if self._last_taken_ns is None else self._last_taken_ns], stamps[:-2]])
+        # the gap left where frame i was, for every frame but the newest; argmin takes the oldest of equals
+        return int(np.argmin(stamps[1:] - before))
 
     @property
     def has_frame(self) -> bool:
@@ -136,7 +157,12 @@ class CameraInput:
 
     def pop(self) -> RgbdFrame | None:
         """The oldest queued frame, or None (call with the condition held)."""
-        return self._queue.popleft() if self._queue else None
+        return self._take() if self._queue else None
+
+    def _take(self) -> RgbdFrame:
+        frame = self._queue.popleft()
+        self._last_taken_ns = frame.stamp_ns
+        return frame
 
     def drop_queued(self) -> int:
         """Drop (and count) every queued frame: at shutdown, frames the engine will never process. Returns
@@ -163,7 +189,7 @@ class CameraInput:
         for _ in range(i):
             self._queue.popleft()
         self.n_dropped += i
-        return self._queue.popleft()
+        return self._take()
 
     def push_front(self, frame: RgbdFrame) -> None:
         """Queue ``frame`` again as the oldest (a frame taken, then not processed yet; condition held)."""

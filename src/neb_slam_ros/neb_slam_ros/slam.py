@@ -103,7 +103,7 @@ class SlamNode(NebNode):
         self.frames_in = 0
         self.run_log = RunLog()
         self._t_first: float | None = None
-        self.input = CameraInput(self, self.input_opt, self.cond)
+        self.input = CameraInput(self, self.input_opt, self.cond, thin=self.live)
         self._loops_applied = 0
         self.poses = PoseOutputs(
             self,

@@ -95,7 +95,7 @@ class TrackerNode(NebNode):
         self._keyframe_stamps: list[int] = []
         self._lag_max = 0
 
-        self.input = CameraInput(self, self.input_opt, self.cond)
+        self.input = CameraInput(self, self.input_opt, self.cond, thin=not self.opt.map_sync)
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
         if self.opt.loop_sync:
             self.create_subscription(Path, "loop_closure", self._on_loop_verdict, qos.events(10))

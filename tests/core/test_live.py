@@ -4,6 +4,8 @@ synthetic scene (every frame handed in, mapping and loop closure in a child proc
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 
 import numpy as np
@@ -197,3 +199,19 @@ def test_a_mapping_process_that_dies_is_reported_not_waited_for(frames):
     with pytest.raises(RuntimeError, match="mapping process"):
         slam.close(timeout_s=10.0)
     assert slam.n_frames == 1 and len(slam.trajectory()) == 1
+
+
+def test_the_mapping_process_outlives_ctrl_c_and_sigterm(frames):
+    """Ctrl-C (SIGINT to the terminal's process group) and a service manager's SIGTERM reach the mapping
+    process too: it ignores them, so the engine still finishes its keyframes and hands over the final map."""
+    cfg = load_config("ci", overrides=["live.first_iterations=5", "loop.enabled=false"])
+    slam = LiveSlam(cfg, frames[0].T_world_cam)
+    child = slam._mapping._process
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        os.kill(child.pid, sig)
+    for f in frames[:3]:
+        slam.process(f)
+    assert slam.wait_integrated(timeout_s=120.0) and child.is_alive()
+    slam.close()
+    assert slam.errors == [] and len(slam.keyframes) == len(slam.frontend.keyframe_poses) >= 1
+    assert len(slam.block_map) >= 1 and child.exitcode == 0

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import io
 import multiprocessing
+import signal
 import threading
 import time
 from collections import deque
@@ -515,7 +516,14 @@ class ProcessMapping:
 
 def _serve(conn) -> None:
     """The child process: prepare the engine, then run one :class:`MappingSide` with the messages of the
-    pipe ``conn`` (``begin``, ``handoff``, ``call``, ``close``)."""
+    pipe ``conn`` (``begin``, ``handoff``, ``call``, ``close``).
+
+    Ctrl-C reaches every process of the terminal's group, and a service manager's SIGTERM every process
+    of the service: the child ignores both, because its parent, which handles them, still needs it to
+    finish the queued keyframes and hand over the final map. A parent that dies closes the pipe, which
+    ends the child."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
         prepare_engine_process()
     except Exception as exc:

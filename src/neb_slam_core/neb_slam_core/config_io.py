@@ -482,6 +482,7 @@ RULES: dict[str, Any] = {
     "live.torch_threads": _COUNT,
     "live.max_gap_s": _NON_NEGATIVE,
     "live.background_nice": _Int(0, 19),
+    "live.mapping_process": _Bool(),
 }
 
 

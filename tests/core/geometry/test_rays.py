@@ -1,10 +1,11 @@
-"""Back-projection of depth pixels, by hand."""
+"""Back-projection of depth pixels, by hand, and the bounds of a depth image's points against them."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from neb_slam_core.geometry.rays import backproject_depth, backproject_pixels
+from neb_slam_core.geometry.rays import backproject_depth, backproject_pixels, depth_bounds
 from neb_slam_core.geometry.se3 import make_pose
 from neb_slam_core.types import Intrinsics
 
@@ -27,3 +28,18 @@ def test_the_depth_image_is_its_valid_pixels_back_projected():
     T = make_pose(np.eye(3), [0.1, 0.2, 0.3])
     np.testing.assert_array_equal(backproject_depth(depth, K, T), backproject_pixels(u, v, depth[v, u], K, T))
     assert backproject_depth(depth, K).shape == (3, 3)
+
+
+def test_depth_bounds_are_the_box_of_the_back_projected_points():
+    """The per-axis pass gives the box of backproject_depth's points (the reference), for a rotated camera
+    and an image with invalid pixels; None without any depth."""
+    rng = np.random.default_rng(3)
+    k = Intrinsics(fx=50.0, fy=55.0, cx=31.5, cy=23.5, width=64, height=48)
+    depth = rng.uniform(0.3, 4.0, (48, 64)).astype(np.float32)
+    depth[rng.random((48, 64)) < 0.3] = 0.0
+    T = make_pose(Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix(), [1.0, -2.0, 0.5])
+    pts = backproject_depth(depth, k, T)
+    lo, hi = depth_bounds(depth, k, T)
+    np.testing.assert_allclose(lo, pts.min(axis=0), atol=1e-9)
+    np.testing.assert_allclose(hi, pts.max(axis=0), atol=1e-9)
+    assert depth_bounds(np.zeros((48, 64), np.float32), k, T) is None

@@ -49,6 +49,30 @@ def backproject_depth(
     return backproject_pixels(u * stride, v * stride, d[v, u], intrinsics, T_world_cam)
 
 
+def depth_bounds(
+    depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The world-axis-aligned bounds ``(lo, hi)`` of the back-projected valid pixels of a depth image, the
+    box of :func:`backproject_depth`'s points, without building them: world coordinate ``i`` of pixel
+    ``(u, v)`` is ``t_i + d(u, v) (R_i0 x_u + R_i1 y_v + R_i2)`` with ``x_u = (u - cx) / fx`` and
+    ``y_v = (v - cy) / fy``, a per-column and a per-row term, so each axis is one pass over the image.
+    None when no pixel has depth."""
+    d = np.asarray(depth_m, dtype=np.float64)
+    valid = d > 0
+    if not valid.any():
+        return None
+    k = intrinsics
+    x = (np.arange(d.shape[1]) - k.cx) / k.fx
+    y = (np.arange(d.shape[0]) - k.cy) / k.fy
+    R, t = np.asarray(T_world_cam, dtype=np.float64)[:3, :3], np.asarray(T_world_cam, dtype=np.float64)[:3, 3]
+    lo, hi = np.empty(3), np.empty(3)
+    for i in range(3):
+        p = d * (R[i, 0] * x[None, :] + R[i, 1] * y[:, None] + R[i, 2])
+        lo[i] = t[i] + np.min(p, where=valid, initial=np.inf)
+        hi[i] = t[i] + np.max(p, where=valid, initial=-np.inf)
+    return lo, hi
+
+
 def backproject_pixels(
     u: np.ndarray, v: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray | None = None
 ) -> np.ndarray:

@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from ..config import BlockConfig, DecoderConfig, OneBlobConfig
-from ..geometry.rays import backproject_depth
+from ..geometry.rays import depth_bounds
 from ..types import Intrinsics
 from .block import NeuralBlock
 from .decoders import Decoders
@@ -277,9 +277,8 @@ class BlockMap(nn.Module):
             return set()
         T = np.asarray(T_world_cam, dtype=np.float64)
         k = intrinsics
-        surface = backproject_depth(np.where(valid, depth + truncation_m, 0.0), k, T)  # the band's far side
-        lo = np.minimum(surface.min(axis=0), T[:3, 3])
-        hi = np.maximum(surface.max(axis=0), T[:3, 3])
+        lo, hi = depth_bounds(np.where(valid, depth + truncation_m, 0.0), k, T)  # the band's far side
+        lo, hi = np.minimum(lo, T[:3, 3]), np.maximum(hi, T[:3, 3])
         dev = self.device
         R_cw = torch.as_tensor(T[:3, :3].T, dtype=torch.float32, device=dev)
         t_cw = torch.as_tensor(-T[:3, :3].T @ T[:3, 3], dtype=torch.float32, device=dev)

@@ -113,6 +113,9 @@ def test_live_slam_tracks_and_integrates_every_keyframe(frames, process):
     assert slam.stats.mapping_lag == 0 and slam.stats.mapping_steps == len(slam.keyframes)
     assert slam.stats.background_chunks == 0  # the first map was fitted in full: nothing left to refine
     assert np.allclose(np.stack(slam.frontend.keyframe_poses), slam.keyframes.poses())
+    # the mesh culling's points are the mapper's keyframes' kept pixels
+    n_points = sum(len(kf.observed_points()) for kf in slam.keyframes.keyframes)
+    assert slam.observed_points().shape == (n_points, 3) and n_points > 0
     # the map updates carried every change: the tracker's map is the mapper's
     tracked, final = slam.frontend.block_map, slam.block_map
     assert len(tracked) == len(final) > 0 and set(slam.block_revisions) == set(range(len(final)))

@@ -43,7 +43,7 @@ from .live_mapping import Handoff, ProcessMapping, Progress, ThreadMapping
 from .mapping.keyframes import KeyframeStore
 from .scene import map_update
 from .scene.block_map import BlockMap
-from .slam import Frontend, new_block_map
+from .slam import Frontend, keyframe_points, new_block_map
 from .types import LoopEvent, RgbdFrame, StepResult
 
 
@@ -146,11 +146,7 @@ class LiveSlam:
     def observed_points(self, max_points: int = 2_000_000) -> np.ndarray:
         """World points of the keyframes' kept pixels (mesh culling), from the mapper's keyframes."""
         if self._final is not None:
-            kfs = self._final[1].keyframes
-            pts = np.concatenate([kf.observed_points() for kf in kfs]) if kfs else np.zeros((0, 3))
-            if len(pts) > max_points:
-                pts = pts[self.frontend.rng.choice(len(pts), max_points, replace=False)]
-            return pts
+            return keyframe_points(self._final[1], self.frontend.rng, max_points)
         return self._mapping.observed_points(self.cfg.seed, max_points)
 
     # ------------------------------------------------------------------ tracking (the caller's thread)

@@ -668,11 +668,17 @@ class Backend:
 
     def observed_points(self, rng: np.random.Generator, max_points: int = 2_000_000) -> np.ndarray:
         """World points of all keyframes' kept pixels (for mesh culling), float64 ``(K, 3)``."""
-        kfs = self.keyframes.keyframes
-        pts = np.concatenate([kf.observed_points() for kf in kfs]) if kfs else np.zeros((0, 3))
-        if len(pts) > max_points:
-            pts = pts[rng.choice(len(pts), max_points, replace=False)]
-        return pts
+        return keyframe_points(self.keyframes, rng, max_points)
+
+
+def keyframe_points(keyframes: KeyframeStore, rng: np.random.Generator, max_points: int = 2_000_000) -> np.ndarray:
+    """World points of the kept pixels of every keyframe in ``keyframes``, float64 ``(K, 3)``; at most
+    ``max_points`` of them, drawn with ``rng`` (what culls a mesh to the observed space)."""
+    kfs = keyframes.keyframes
+    pts = np.concatenate([kf.observed_points() for kf in kfs]) if kfs else np.zeros((0, 3))
+    if len(pts) > max_points:
+        pts = pts[rng.choice(len(pts), max_points, replace=False)]
+    return pts
 
 
 class KnownPoseMapping:

@@ -39,7 +39,7 @@ import torch
 
 from .config import SlamConfig
 from .io.trajectory import Trajectory
-from .live_mapping import Handoff, ProcessMapping, Progress, ThreadMapping
+from .live_mapping import Handoff, MappingSide, ProcessMapping, Progress
 from .mapping.keyframes import KeyframeStore
 from .scene import map_update
 from .scene.block_map import BlockMap
@@ -90,7 +90,10 @@ class LiveSlam:
             torch.set_num_threads(cfg.live.torch_threads)
         torch.manual_seed(cfg.seed)
         mapper_map = new_block_map(cfg) if block_map is None else block_map
-        self._track_map = copy.deepcopy(mapper_map)
+        if mapping is None and cfg.live.mapping_process:
+            mapping = ProcessMapping()
+        # a mapping process gets its own copy with the map's bytes; threads here need one made
+        self._track_map = mapper_map if mapping is not None else copy.deepcopy(mapper_map)
         self.frontend = Frontend(cfg, self._track_map, T_world_first, own_map=True)
         self.loops: list[LoopEvent] = []
         self.stats = LiveStats()
@@ -102,13 +105,11 @@ class LiveSlam:
         self._revisions: dict[int, int] = {}  # per block, the map updates that carried it
         self._final: tuple[BlockMap, KeyframeStore] | None = None
         self._loaded_map = block_map is not None
-        if mapping is None and cfg.live.mapping_process:
-            mapping = ProcessMapping()
         if mapping is not None:
             mapping.begin(cfg, mapper_map, self._receive)
             self._mapping = mapping
         else:
-            self._mapping = ThreadMapping(cfg, mapper_map, self._receive)
+            self._mapping = MappingSide(cfg, mapper_map, self._receive)
         if cfg.loop.enabled:
             self.frontend.relocaliser = self._relocalisation_poses
 

@@ -11,15 +11,15 @@ to the tracker leaves through one callback, as ``(kind, payload)`` messages:
 - ``"progress"``: :class:`Progress`, after every update and every keyframe the loop closer checked;
 - ``"error"``: a thread failed (its name, the exception).
 
-Two transports carry them, with the same messages:
+It runs in one of two places, with the same messages:
 
-- :class:`ThreadMapping`: the mapping side in the tracker's process; the callback is the tracker's.
-- :class:`ProcessMapping`: the mapping side in a child process (``live.mapping_process``), the messages
-  over a pipe. Python runs one thread of a process at a time (the GIL); the engine's threads run many
-  short torch operations each, so in one process they take turns on the interpreter and two cores stay
-  partly idle. A child process has an interpreter of its own: the tracker keeps one core, mapping and
-  loop closure the other. The child is started with ``spawn`` (a forked copy of a process that runs
-  torch's thread pools, or ROS's, is not safe) and imports the engine once, before the first frame.
+- in the tracker's process: the tracker makes a :class:`MappingSide` and gives it its own callback;
+- in a child process (``live.mapping_process``): :class:`ProcessMapping`, the messages over a pipe.
+  Python runs one thread of a process at a time (the GIL); the engine's threads run many short torch
+  operations each, so in one process they take turns on the interpreter and two cores stay partly idle.
+  A child process has an interpreter of its own: the tracker keeps one core, mapping and loop closure
+  the other. The child is started with ``spawn`` (a forked copy of a process that runs torch's thread
+  pools, or ROS's, is not safe) and imports the engine once, before the first frame.
 
 Three rules keep the camera from waiting (the tracker's side is in :mod:`neb_slam_core.live`):
 
@@ -41,7 +41,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -111,6 +111,9 @@ class MappingSide:
     def __init__(self, cfg: SlamConfig, block_map: BlockMap, emit: Emit):
         self.cfg = cfg
         self._emit_to = emit
+        # the C++ kernels (and what imports them lazily) are loaded before the threads start, which would
+        # otherwise race for a half-imported module
+        _ext.prepare(cfg.grid_backend)
         self.backend = Backend(cfg, block_map)
         self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled else None
         # the loop thread adds keyframes to the closer's database while a lost tracker queries it
@@ -177,7 +180,7 @@ class MappingSide:
         held, so that messages leave in the order the state changed."""
         if kind is not None:
             self._emit_to(kind, payload)
-        self._emit_to("progress", Progress(**vars(self.progress)))
+        self._emit_to("progress", replace(self.progress))
 
     # ------------------------------------------------------------------ mapping (its own thread)
 
@@ -366,29 +369,7 @@ def snapshot(
     )
 
 
-# ---------------------------------------------------------------------- the two transports
-
-
-class ThreadMapping:
-    """The mapping side in the tracker's process: its threads call ``emit`` directly."""
-
-    def __init__(self, cfg: SlamConfig, block_map: BlockMap, emit: Emit):
-        # the C++ kernels (and what imports them lazily) are loaded before the threads start, which would
-        # otherwise race for a half-imported module
-        _ext.prepare(cfg.grid_backend)
-        self._side = MappingSide(cfg, block_map, emit)
-
-    def submit(self, handoff: Handoff) -> None:
-        self._side.submit(handoff)
-
-    def relocalise(self, frame: RgbdFrame, poses: np.ndarray) -> list[np.ndarray]:
-        return self._side.relocalise(frame, poses)
-
-    def observed_points(self, seed: int, max_points: int) -> np.ndarray:
-        return self._side.observed_points(seed, max_points)
-
-    def close(self, timeout_s: float) -> tuple[BlockMap, KeyframeStore]:
-        return self._side.close(timeout_s)
+# ---------------------------------------------------------------------- the child process
 
 
 def _to_bytes(obj) -> bytes:
@@ -544,10 +525,7 @@ def _serve(conn) -> None:
             return
         if kind == "begin":
             cfg, map_bytes = payload
-            if cfg.live.torch_threads > 0:
-                torch.set_num_threads(cfg.live.torch_threads)
-            _ext.prepare(cfg.grid_backend)
-            torch.manual_seed(cfg.seed)
+            torch.manual_seed(cfg.seed)  # as the tracker's process seeds before a mapping side of its own
             side = MappingSide(cfg, _from_bytes(map_bytes), emit)
         elif kind == "handoff":
             side.submit(payload)

@@ -64,7 +64,8 @@ def depth_bounds(
     k = intrinsics
     x = (np.arange(d.shape[1]) - k.cx) / k.fx
     y = (np.arange(d.shape[0]) - k.cy) / k.fy
-    R, t = np.asarray(T_world_cam, dtype=np.float64)[:3, :3], np.asarray(T_world_cam, dtype=np.float64)[:3, 3]
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
     lo, hi = np.empty(3), np.empty(3)
     for i in range(3):
         p = d * (R[i, 0] * x[None, :] + R[i, 1] * y[:, None] + R[i, 2])

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -218,3 +219,70 @@ def test_the_mapping_process_outlives_ctrl_c_and_sigterm(frames):
     slam.close()
     assert slam.errors == [] and len(slam.keyframes) == len(slam.frontend.keyframe_poses) >= 1
     assert len(slam.block_map) >= 1 and child.exitcode == 0
+
+
+def test_a_mapping_side_without_loop_thread_takes_outside_corrections(frames):
+    """The ROS mapper's arrangement: a mapping side with no loop thread of its own. Each update acknowledges
+    the newest keyframe it integrated; the first map goes back after the handoff's ``first_iterations``
+    (the rest follows in background chunks); a correction from outside moves its keyframe at once (the
+    keyframes after it rigidly with it, as ``merge_correction`` says) and the update that carries the move
+    names the correction's stamp, before any re-optimisation step changed the poses again."""
+    from neb_slam_core.live_mapping import Handoff, MappingSide
+    from neb_slam_core.loop.correction import merge_correction
+
+    cfg = load_config(
+        "ci",
+        overrides=[
+            "mapping.first_iterations=25",
+            "live.chunk_iterations=10",
+            "loop.map_iterations=10",
+            "loop.joint_iterations=10",
+        ],
+    )
+    assert cfg.loop.enabled  # the loop thread is absent because of closes_loops, not of the config
+    cond, messages = threading.Condition(), []
+
+    def emit(kind, payload):
+        with cond:
+            messages.append((kind, payload))
+            cond.notify_all()
+
+    def updates():
+        return [p for k, p in messages if k == "update"]
+
+    def wait(predicate):
+        with cond:
+            assert cond.wait_for(predicate, timeout=120.0), messages[-3:]
+
+    torch.manual_seed(cfg.seed)
+    block_map = new_block_map(cfg)
+    side = MappingSide(cfg, block_map, emit, closes_loops=False)
+    chosen = [frames[i] for i in (0, 3, 6, 9)]
+    try:
+        assert side.loop_closer is None
+        centres = np.round(chosen[0].T_world_cam[:3, 3][None], 0)  # one block, made by the tracker
+        for kid, f in enumerate(chosen):
+            side.submit(Handoff(f, f.T_world_cam, 3 * kid, kid, True, kid == 0, centres, np.zeros((0, 4, 4)), 5))
+            if kid == 0:
+                wait(lambda: updates())
+                first = updates()[0]
+                assert first.ack_stamp_ns == chosen[0].stamp_ns and first.loop_stamp_ns == -1
+                assert first.block_ids == [0] and len(first.keyframe_poses) == 1
+        wait(lambda: any(u.ack_stamp_ns == chosen[-1].stamp_ns for u in updates()))
+        with cond:
+            before = updates()[-1].keyframe_poses.copy()
+        assert len(before) == 4
+        shift = make_pose(np.eye(3), [0.01, 0.0, 0.0])
+        by_id = np.zeros((3, 4, 4))
+        by_id[2] = shift @ before[2]
+        side.correct(2, 1, by_id, stamp_ns=777)
+        wait(lambda: any(u.loop_stamp_ns == 777 for u in updates()))
+        moved = next(u for u in updates() if u.loop_stamp_ns == 777).keyframe_poses
+        np.testing.assert_allclose(moved, merge_correction(before, 2, by_id[2:3]), atol=1e-12)
+        np.testing.assert_allclose(moved[3], shift @ before[3], atol=1e-9)
+        # the first map's rest (20 steps: 2 chunks) and the loop's 10 + 10 steps (2 chunks) in the background
+        wait(lambda: side.progress.background_chunks == 4)
+    finally:
+        side.close(120.0)
+    assert [k for k, _ in messages if k not in ("update", "progress")] == []
+    assert side.progress.checked == 0 and side.progress.integrated == 4

@@ -172,6 +172,7 @@ class LiveSlam:
                     step.first,
                     self._track_map.centres().detach().cpu().double().numpy().reshape(-1, 3),
                     np.stack(self.frontend.keyframe_poses),
+                    self.cfg.live.first_iterations,
                 )
             )
         with self._cond:

@@ -68,7 +68,10 @@ class Handoff:
         T_world_cam: its tracked pose; frame_index: its index among the tracked frames.
         keyframe_id: its id; map_now: a mapping step follows it; first: the run's first frame.
         block_centres: every block the tracker has, ``(N, 3)`` (a block's id is its position).
-        keyframe_poses: the tracker's keyframe poses when it was made, ``(K, 4, 4)``.
+        keyframe_poses: the tracker's keyframe poses when it was made, ``(K, 4, 4)`` (what the loop closer
+            starts from; may be empty where the mapping side closes no loops).
+        first_iterations: with ``first``, the map-only steps fitted before the update goes back (the rest of
+            ``mapping.first_iterations`` runs in the background): what the tracker waits for.
     """
 
     frame: RgbdFrame
@@ -79,6 +82,7 @@ class Handoff:
     first: bool
     block_centres: np.ndarray
     keyframe_poses: np.ndarray
+    first_iterations: int = 0
 
 
 @dataclass
@@ -106,16 +110,22 @@ class _Work:
 
 class MappingSide:
     """The mapper and loop-closer threads over ``block_map`` (the mapper's copy); messages to ``emit``
-    (module docstring). :meth:`close` ends both and returns the final map and keyframe store."""
+    (module docstring). :meth:`close` ends both and returns the final map and keyframe store.
 
-    def __init__(self, cfg: SlamConfig, block_map: BlockMap, emit: Emit):
+    With ``closes_loops`` false there is no loop thread (whatever ``cfg.loop`` says): corrections come from
+    outside through :meth:`correct` (the ROS ``mapper`` node, whose loop closer is a node of its own).
+    Another thread that reads the map or the keyframes while the side runs holds :attr:`map_lock`, which
+    the mapper thread holds while it changes them."""
+
+    def __init__(self, cfg: SlamConfig, block_map: BlockMap, emit: Emit, closes_loops: bool = True):
         self.cfg = cfg
         self._emit_to = emit
         # the C++ kernels (and what imports them lazily) are loaded before the threads start, which would
         # otherwise race for a half-imported module
         _ext.prepare(cfg.grid_backend)
         self.backend = Backend(cfg, block_map)
-        self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled else None
+        self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled and closes_loops else None
+        self.map_lock = threading.RLock()
         # the loop thread adds keyframes to the closer's database while a lost tracker queries it
         self._database_lock = threading.Lock()
         self._cond = threading.Condition()
@@ -123,7 +133,9 @@ class MappingSide:
         self._mapper_stopping = False  # ... then the mapper, once it has integrated and corrected all
         self._to_mapper: deque[Handoff] = deque()
         self._to_loop: deque[Handoff] = deque()
-        self._corrections: list[tuple[int, int, np.ndarray]] = []  # (keyframe id, loop start id, poses)
+        # (query keyframe id, loop start id, corrected poses by keyframe id, the correction's stamp or -1)
+        self._corrections: list[tuple[int, int, np.ndarray, int]] = []
+        self._loop_stamp = -1  # the newest stamped correction applied
         self._version = 0
         self._mapper_poses: np.ndarray | None = None  # its keyframe poses after its last step
         self.progress = Progress()
@@ -146,6 +158,15 @@ class MappingSide:
                 self._to_loop.append(handoff)
             self._cond.notify_all()
 
+    def correct(self, query_id: int, start_id: int, poses: np.ndarray, stamp_ns: int = -1) -> None:
+        """Queue a loop correction of keyframes ``start_id + 1 .. query_id`` to ``poses[start_id + 1 :
+        query_id + 1]`` (rows by keyframe id; the keyframes must have been submitted); ``stamp_ns`` names
+        it in the updates' ``loop_stamp_ns`` once applied."""
+        with self._cond:
+            self._corrections.append((query_id, start_id, np.asarray(poses, dtype=np.float64), stamp_ns))
+            self.progress.pending = len(self._corrections)
+            self._cond.notify_all()
+
     def relocalise(self, frame: RgbdFrame, poses: np.ndarray) -> list[np.ndarray]:
         """Candidate poses of a lost frame from the keyframes the loop thread has added so far; ``poses``:
         the tracker's keyframe poses (it has every keyframe, the loop thread may lag)."""
@@ -156,7 +177,8 @@ class MappingSide:
 
     def observed_points(self, seed: int, max_points: int) -> np.ndarray:
         """World points of the keyframes' kept pixels (mesh culling): :meth:`Backend.observed_points`."""
-        return self.backend.observed_points(np.random.default_rng(seed), max_points)
+        with self.map_lock:
+            return self.backend.observed_points(np.random.default_rng(seed), max_points)
 
     def close(self, timeout_s: float) -> tuple[BlockMap, KeyframeStore]:
         """Let the loop thread check the queued keyframes and the mapper integrate them (and apply the
@@ -185,7 +207,6 @@ class MappingSide:
     # ------------------------------------------------------------------ mapping (its own thread)
 
     def _map_loop(self) -> None:
-        live = self.cfg.live
         background: list[_Work] = []
         unsent: set[int] = set()
         niced = False
@@ -201,39 +222,45 @@ class MappingSide:
                 handoffs = list(self._to_mapper)
                 self._to_mapper.clear()
                 corrections, self._corrections = self._corrections, []
-            changed: set[int] = set()
-            if handoffs:
-                changed |= self._integrate(handoffs, unsent, background)
-                self.progress.mapping_steps += 1
-            if corrections:  # their keyframes are integrated: handed to the mapper before the loop thread
-                changed |= self._correct(corrections)
-                background[:] = [w for w in background if w.kind != "loop"]
-                start = corrections[-1][1]
-                background += [
-                    _Work("loop", self.cfg.loop.map_iterations, False),
-                    _Work("loop", self.cfg.loop.joint_iterations, True, start),
-                ]
-            if background:
-                # what this cycle integrated goes to the tracker first; then one chunk of the background work,
-                # in every cycle, so that a steady stream of keyframes cannot hold the first map's refinement
-                # (or a loop's re-optimisation) back for the whole run
-                if changed or unsent:
-                    self._hand_back(changed | unsent)
-                    changed, unsent = set(), set()
-                work = background[0]
-                n = min(live.chunk_iterations, work.iterations)
-                res = self.backend.mapper.optimise(n, optimise_poses=work.optimise_poses, fixed_until=work.fixed_until)
-                changed |= res.changed_block_ids
-                work.iterations -= n
-                if work.iterations <= 0:
-                    background.pop(0)
-                self.progress.background_chunks += 1
-            self._hand_back(changed | unsent)
-            unsent.clear()
+            with self.map_lock:
+                self._cycle(handoffs, corrections, unsent, background)
             if not niced:
                 # the first cycle (the first map, which the tracker waits for) ran at the tracker's priority
-                lower_thread_priority(live.background_nice)
+                lower_thread_priority(self.cfg.live.background_nice)
                 niced = True
+
+    def _cycle(self, handoffs: list[Handoff], corrections: list, unsent: set[int], background: list[_Work]) -> None:
+        """One cycle of the mapper thread: integrate the queued keyframes, apply the corrections, one chunk
+        of background work; each change goes back to the tracker."""
+        changed: set[int] = set()
+        if handoffs:
+            changed |= self._integrate(handoffs, unsent, background)
+            self.progress.mapping_steps += 1
+        if corrections:  # their keyframes are integrated: handed to the mapper before the loop thread
+            changed |= self._correct(corrections)
+            background[:] = [w for w in background if w.kind != "loop"]
+            start = corrections[-1][1]
+            background += [
+                _Work("loop", self.cfg.loop.map_iterations, False),
+                _Work("loop", self.cfg.loop.joint_iterations, True, start),
+            ]
+        if background:
+            # what this cycle integrated goes to the tracker first; then one chunk of the background work,
+            # in every cycle, so that a steady stream of keyframes cannot hold the first map's refinement
+            # (or a loop's re-optimisation) back for the whole run
+            if changed or unsent:
+                self._hand_back(changed | unsent)
+                changed, unsent = set(), set()
+            work = background[0]
+            n = min(self.cfg.live.chunk_iterations, work.iterations)
+            res = self.backend.mapper.optimise(n, optimise_poses=work.optimise_poses, fixed_until=work.fixed_until)
+            changed |= res.changed_block_ids
+            work.iterations -= n
+            if work.iterations <= 0:
+                background.pop(0)
+            self.progress.background_chunks += 1
+        self._hand_back(changed | unsent)
+        unsent.clear()
 
     def _integrate(self, handoffs: list[Handoff], unsent: set[int], background: list[_Work]) -> set[int]:
         """Store the keyframes, create the blocks the tracker allocated, and map once for all of them."""
@@ -243,7 +270,7 @@ class MappingSide:
             for centre in h.block_centres[len(bm) :]:
                 unsent.add(bm.add_block(torch.as_tensor(centre, dtype=torch.float32)).block_id)
             if h.first:
-                n0 = min(self.cfg.live.first_iterations, self.cfg.mapping.first_iterations)
+                n0 = min(h.first_iterations, self.cfg.mapping.first_iterations)
                 # the tracker waits for this map: it is fitted on every core the process may use, whatever
                 # thread count the mapping thread runs with otherwise
                 torch.set_num_threads(usable_cores())
@@ -266,13 +293,14 @@ class MappingSide:
             changed |= self.backend.mapper.optimise().changed_block_ids
         return changed
 
-    def _correct(self, corrections: list[tuple[int, int, np.ndarray]]) -> set[int]:
+    def _correct(self, corrections: list[tuple[int, int, np.ndarray, int]]) -> set[int]:
         """Move the keyframe poses by the loop corrections, in the order they came (each merged over the
         poses the previous ones left); the re-optimisation is left to the background work."""
         changed: set[int] = set()
-        for query_id, start_id, poses in corrections:
+        for query_id, start_id, poses, stamp_ns in corrections:
             kfs = self.backend.keyframes
             first = start_id + 1
+            self._loop_stamp = max(self._loop_stamp, stamp_ns)
             if query_id < first:
                 continue
             merged = merge_correction(kfs.poses(), first, poses[first : query_id + 1])
@@ -282,12 +310,15 @@ class MappingSide:
     def _hand_back(self, block_ids: set[int]) -> None:
         kfs = self.backend.keyframes
         poses = kfs.poses() if len(kfs) else np.zeros((0, 4, 4))
-        update = snapshot(
+        stamps = np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64)
+        update = map_update.capture(
             self.backend.block_map,
             block_ids,
             self._version + 1,
+            int(stamps[-1]) if len(stamps) else -1,  # the newest keyframe integrated
+            stamps,
             poses,
-            np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64),
+            self._loop_stamp,
         )
         with self._cond:
             self._version += 1
@@ -317,7 +348,7 @@ class MappingSide:
             with self._cond:
                 self.progress.checked = kid + 1
                 if event is not None and event.applied:
-                    self._corrections.append((kid, event.start_id, corrected))
+                    self._corrections.append((kid, event.start_id, corrected, -1))
                     self.progress.pending = len(self._corrections)
                     self._cond.notify_all()
                 self._tell(None if event is None else "loop", event)
@@ -339,34 +370,6 @@ class MappingSide:
                     self._cond.notify_all()
 
         return run
-
-
-def snapshot(
-    block_map: BlockMap, block_ids, version: int, keyframe_poses: np.ndarray, keyframe_stamps_ns: np.ndarray
-) -> map_update.MapUpdate:
-    """A :class:`~neb_slam_core.scene.map_update.MapUpdate` of ``block_map`` in memory: copies of the tables
-    and observed-space records of ``block_ids``, of the decoders and of the keyframe poses, for another
-    thread (or process) to apply."""
-    blocks = []
-    for i in sorted(int(b) for b in block_ids):
-        block = block_map.blocks[i]
-        blocks.append(
-            map_update.BlockState(
-                i,
-                block.centre.detach().cpu().numpy().copy(),
-                block.grid.table.detach().cpu().reshape(-1).clone().numpy(),
-                map_update.pack_observed(block.observed),
-            )
-        )
-    decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().clone().numpy()
-    return map_update.MapUpdate(
-        version,
-        -1,
-        blocks,
-        decoders,
-        np.asarray(keyframe_stamps_ns, dtype=np.int64),
-        np.array(keyframe_poses, dtype=np.float64),
-    )
 
 
 # ---------------------------------------------------------------------- the child process

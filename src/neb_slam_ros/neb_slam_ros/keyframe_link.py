@@ -6,12 +6,14 @@ and ``keyframe/meta`` (std_msgs/String, JSON) with what the standard messages ca
 
     {"stamp_ns": int, "frame_index": int, "keyframe_id": int, "map_now": bool, "first": bool,
      "T_world_cam": [16 floats, row-major, exact], "block_centres": [[x, y, z], ...],
-     "T_map_world": [16 floats] (the first keyframe only)}
+     "T_map_world": [16 floats] (the first keyframe only), "first_iterations": int (the first keyframe only)}
 
 ``block_centres`` lists every block the tracker has allocated so far (ids are positions), so a mapper
 creates the same blocks before it integrates the keyframe, whatever order the topics arrive in.
 ``T_map_world`` is the engine world's pose in the tracker's level ``map_frame`` (:mod:`neb_slam_ros.frames`),
-fixed at the first frame: the mapper publishes its mesh in that frame too.
+fixed at the first frame: the mapper publishes its mesh in that frame too. ``first_iterations`` is the
+number of map-only steps the tracker waits for on the first keyframe (the mapper runs the rest of
+``mapping.first_iterations`` in the background); absent: all of them.
 """
 
 from __future__ import annotations
@@ -34,11 +36,14 @@ class KeyframeMeta:
     T_world_cam: np.ndarray
     block_centres: np.ndarray
     T_map_world: np.ndarray | None = None
+    first_iterations: int | None = None
 
     def to_json(self) -> str:
         extra = {}
         if self.T_map_world is not None:
             extra["T_map_world"] = [float(v) for v in np.asarray(self.T_map_world).reshape(-1)]
+        if self.first_iterations is not None:
+            extra["first_iterations"] = int(self.first_iterations)
         return json.dumps(
             {
                 "stamp_ns": self.stamp_ns,
@@ -72,6 +77,7 @@ class KeyframeMeta:
                 T,
                 centres,
                 T_map_world,
+                int(d["first_iterations"]) if "first_iterations" in d else None,
             )
         except KeyError as exc:
             raise ValueError(f"field {exc.args[0]!r} is missing") from None

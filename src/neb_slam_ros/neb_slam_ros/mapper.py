@@ -1,17 +1,22 @@
 """``mapper``: the neural-block map, its joint optimisation with the keyframe poses, and the mesh.
 
-Subscribes the tracker's keyframes (``keyframe/*``, assembled by stamp) and integrates them in order with the
-engine's :class:`~neb_slam_core.slam.Backend`: the first keyframe initialises the map, keyframes marked
-``map_now`` run a joint optimisation step. A ``loop_closure`` from the loop closer (corrected poses of
-consecutive keyframes) is applied once those keyframes are integrated: keyframes after them move
-rigidly with the last, and the map is re-optimised in the paper's two stages. After each step it publishes
-``map_update`` (the changed
-blocks, the decoders and the keyframe poses; layout in ``neb_slam_core/scene/map_update.py``). Every
-``mesh_period_s`` it publishes ``mesh`` (one TRIANGLE_LIST marker per block). Services ``save_mesh`` and
-``save_map`` write ``mesh.ply`` / ``map.pt`` into ``output_dir`` (``save_mesh`` also publishes that mesh);
-on shutdown (SIGINT, SIGTERM) it publishes the final mesh and writes ``map.pt``, ``mesh.ply``,
-``trajectory.txt`` (every frame of the tracker's latest ``path``, each moved
-with the final pose of its keyframe) and ``config.yaml`` there.
+Subscribes the tracker's keyframes (``keyframe/*``, assembled by stamp) and hands them, in order, to the
+engine's mapping side (:class:`~neb_slam_core.live_mapping.MappingSide`: the mapper in a thread of its
+own, as in the one-process live engine). The first keyframe initialises the map with the number of
+map-only steps the tracker waits for (its ``keyframe/meta`` says: all of ``mapping.first_iterations`` for
+a tracker with ``map_sync``, ``live.first_iterations`` otherwise, the rest then refined in the
+background); keyframes marked ``map_now`` run a joint optimisation step, and keyframes that queued up
+while the mapper was busy share one step. A ``loop_closure`` from the loop closer (corrected poses of
+consecutive keyframes) is applied once those keyframes have arrived: the keyframes move at once (those
+after them rigidly with the last), and the map is re-optimised in the paper's two stages in the
+background, a chunk of ``live.chunk_iterations`` at a time. After each step it publishes ``map_update``
+(the changed blocks, the decoders and the keyframe poses; layout in
+``neb_slam_core/scene/map_update.py``). Every ``mesh_period_s`` it publishes ``mesh`` (one TRIANGLE_LIST
+marker per block). Services ``save_mesh`` and ``save_map`` write ``mesh.ply`` / ``map.pt`` into
+``output_dir`` (``save_mesh`` also publishes that mesh); on shutdown (SIGINT, SIGTERM) it integrates the
+keyframes received, publishes the final mesh and writes ``map.pt``, ``mesh.ply``, ``trajectory.txt``
+(every frame of the tracker's latest ``path``, each moved with the final pose of its keyframe) and
+``config.yaml`` there.
 
 With ``map_file`` (a ``map.pt`` of ``save_map`` or of ``neb-slam run``) it continues that map: its
 blocks and decoders are the starting map, and until the first keyframe arrives the whole map goes out
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,10 +46,10 @@ from std_msgs.msg import UInt8MultiArray
 from neb_slam_core.geometry.se3 import invert
 from neb_slam_core.io.run_dir import MAP_FILE, TRAJECTORY_FILE, RunDirectory
 from neb_slam_core.io.trajectory import Trajectory
-from neb_slam_core.loop.correction import merge_correction
+from neb_slam_core.live_mapping import Handoff, MappingSide, Progress
 from neb_slam_core.scene import map_update
 from neb_slam_core.scene.persistence import save_map
-from neb_slam_core.slam import Backend, corrected_trajectory, new_block_map
+from neb_slam_core.slam import corrected_trajectory, new_block_map
 from neb_slam_ros import conversions, qos
 from neb_slam_ros._node_main import run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
@@ -85,23 +91,25 @@ class MapperNode(NebNode):
         torch.manual_seed(self.cfg.seed)
         loaded = map_parameter(self.cfg, self.opt.map_file)
         self.block_map = new_block_map(self.cfg) if loaded is None else loaded
-        self.backend = Backend(self.cfg, self.block_map)
         self._rng = np.random.default_rng(self.cfg.seed)
-        self._version = 0
-        self._unsent_blocks: set[int] = set()
+        self._version = 0 if loaded is None else 1  # version 1: the loaded map, whole
         self._path: tuple[np.ndarray, np.ndarray] | None = None  # the tracker's path, in frame_id
         self._T_map_world = np.eye(4)  # the engine's world in frame_id, from the keyframes
-        self._loops: list[tuple[int, np.ndarray, np.ndarray]] = []  # corrections not applied yet
-        self._loop_stamp = -1  # header stamp of the newest correction handled (map_update's loop_stamp_ns)
+        self._new_loops: list[tuple[int, np.ndarray, np.ndarray]] = []  # corrections not looked at yet
+        self._waiting_loops: list[tuple[int, np.ndarray, np.ndarray]] = []  # ... waiting for their keyframes
+        self._keyframe_ids: dict[int, int] = {}  # stamp -> id of every keyframe handed to the mapping side
+        self._messages: deque[tuple[str, object]] = deque()  # from the mapping side, to publish or log
+        self._progress = Progress()
         self._n_loops = 0
-        self._n_mapping_steps = 0
-        self._map_ms = 0.0
 
         self._keyframes = KeyframeSubscriber(self, self.cond)
         self._assembler = self._keyframes.assembler
         self.create_subscription(PathMsg, "path", self._on_path, qos.state())
         self.create_subscription(PathMsg, "loop_closure", self._on_loop, qos.events(10))
         self.pub_update = self.create_publisher(UInt8MultiArray, "map_update", qos.events(10))
+        # the engine's mapping side: the mapper in a thread of its own, loop corrections from the loop closer
+        self.side = MappingSide(self.cfg, self.block_map, self._on_side, closes_loops=False)
+        self.backend = self.side.backend
         self.map_outputs = MapOutputs(
             self,
             self.opt.frame_id,
@@ -152,107 +160,116 @@ class MapperNode(NebNode):
             self.get_logger().error(f"{self.resolve_topic_name('loop_closure')}: {exc}: correction ignored")
             return
         with self.cond:
-            self._loops.append((conversions.stamp_ns(msg), stamps, poses))
+            self._new_loops.append((conversions.stamp_ns(msg), stamps, poses))
             self.cond.notify_all()
+
+    # ------------------------------------------------------------------ the mapping side's threads
+
+    def _on_side(self, kind: str, payload: object) -> None:
+        """A message of the mapping side (its thread, its lock held): queued for the worker."""
+        with self.cond:
+            if kind == "progress":
+                self._progress = payload
+                return
+            self._messages.append((kind, payload))
+            self.cond.notify_all()
+
+    def state_lock(self):
+        return self.side.map_lock
 
     # ------------------------------------------------------------------ worker thread
 
     def has_work(self) -> bool:
-        return self._assembler.has_ready or bool(self._loops)
+        return self._assembler.has_ready or bool(self._new_loops) or bool(self._messages)
 
-    def take_work(self) -> tuple[list[dict], list]:
-        loops, self._loops = self._loops, []
-        return self._assembler.pop_ready(), loops
+    def take_work(self) -> tuple[list[dict], list, list]:
+        loops, self._new_loops = self._new_loops, []
+        messages = list(self._messages)
+        self._messages.clear()
+        return self._assembler.pop_ready(), loops, messages
 
-    def do_work(self, work: tuple[list[dict], list]) -> None:
-        ready, loops = work
+    def do_work(self, work: tuple[list[dict], list, list]) -> None:
+        ready, loops, messages = work
+        for kind, payload in messages:
+            if kind == "update":
+                self._publish_update(payload)
+            elif kind == "error":
+                self.get_logger().error(f"mapping failed: {payload}")
         for parts in ready:
             try:
-                self._integrate(parts)
+                self._submit(parts)
             except Exception as exc:  # never let one keyframe kill the mapper
                 self.get_logger().error(f"keyframe {parts['meta'].keyframe_id} failed: {type(exc).__name__}: {exc}")
-        waiting = [loop for loop in loops if not self._correct(*loop)]
-        if waiting:
-            with self.cond:  # their keyframes have not all arrived: after the next keyframes
-                self._loops[:0] = waiting
+        # corrections whose keyframes have not all arrived wait for the next keyframes
+        self._waiting_loops = [loop for loop in self._waiting_loops + loops if not self._correct(*loop)]
 
-    def _integrate(self, parts: dict) -> None:
+    def _submit(self, parts: dict) -> None:
+        """Hand a keyframe to the mapping side (the blocks the tracker allocated come with it)."""
         meta: KeyframeMeta = parts["meta"]
         if meta.first and self.opt.map_file:
             self.get_logger().error(
                 "the tracker started a new map instead of continuing map_file (start it with "
                 "wait_for_map:=true): its map and this one differ from here on"
             )
-        for centre in meta.block_centres[len(self.block_map) :]:
-            block = self.block_map.add_block(torch.as_tensor(centre, dtype=torch.float32))
-            self._unsent_blocks.add(block.block_id)
+        if meta.keyframe_id != len(self._keyframe_ids):
+            self.get_logger().error(
+                f"keyframe ids diverged: tracker {meta.keyframe_id}, mapper {len(self._keyframe_ids)}"
+            )
         if meta.T_map_world is not None and not np.array_equal(meta.T_map_world, self._T_map_world):
             with self.cond:
                 self._T_map_world = meta.T_map_world
             self.map_outputs.align(meta.T_map_world)
-        frame = KeyframeSubscriber.frame(parts)
-        step = self.backend.add_keyframe(frame, meta.T_world_cam, meta.frame_index, meta.map_now, meta.first)
-        if step.keyframe.keyframe_id != meta.keyframe_id:
-            self.get_logger().error(
-                f"keyframe ids diverged: tracker {meta.keyframe_id}, mapper {step.keyframe.keyframe_id}"
+        first_iterations = self.cfg.mapping.first_iterations if meta.first_iterations is None else meta.first_iterations
+        self.side.submit(
+            Handoff(
+                KeyframeSubscriber.frame(parts),
+                meta.T_world_cam,
+                meta.frame_index,
+                meta.keyframe_id,
+                meta.map_now,
+                meta.first,
+                meta.block_centres,
+                np.zeros((0, 4, 4)),
+                first_iterations,
             )
-        self.get_logger().debug(
-            f"keyframe {meta.keyframe_id} (frame {meta.frame_index}) integrated"
-            + (f", mapped in {step.map_ms:.0f} ms" if step.mapped else "")
         )
-        self._unsent_blocks |= step.changed_block_ids  # without mapping: the blocks whose observed space grew
-        if step.mapped:
-            self._n_mapping_steps += 1
-            self._map_ms += step.map_ms
-            self._publish_update(self._unsent_blocks, meta.stamp_ns)
-            self._unsent_blocks.clear()
+        self._keyframe_ids[meta.stamp_ns] = len(self._keyframe_ids)
+        self.get_logger().debug(f"keyframe {meta.keyframe_id} (frame {meta.frame_index}) handed to the mapper")
 
     def _correct(self, loop_stamp_ns: int, stamps: np.ndarray, poses: np.ndarray) -> bool:
-        """Apply the loop correction stamped ``loop_stamp_ns`` (corrected poses of consecutive keyframes,
-        named by stamp) and re-optimise; False while some of its keyframes are not integrated yet (it is
-        kept for later)."""
-        kfs = self.backend.keyframes
-        id_of = {int(kf.stamp_ns): kf.keyframe_id for kf in kfs.keyframes}
-        if any(int(s) not in id_of for s in stamps):
+        """Hand the loop correction stamped ``loop_stamp_ns`` (corrected poses of consecutive keyframes,
+        named by stamp) to the mapping side, which moves the keyframes at once and re-optimises in the
+        background; False while some of its keyframes have not arrived yet (it is kept for later)."""
+        if any(int(s) not in self._keyframe_ids for s in stamps):
             return False
-        self._loop_stamp = max(self._loop_stamp, loop_stamp_ns)
-        ids = [id_of[int(s)] for s in stamps]
+        ids = [self._keyframe_ids[int(s)] for s in stamps]
         if ids != list(range(ids[0], ids[0] + len(ids))) or ids[0] == 0:
             self.get_logger().error(
                 f"loop_closure: keyframes {ids} are not consecutive keyframes after the first: correction ignored"
             )
             return True
-        step = self.backend.correct_loop(merge_correction(kfs.poses(), ids[0], poses), ids[0] - 1)
+        by_id = np.zeros((ids[-1] + 1, 4, 4))
+        by_id[ids] = poses
+        self.side.correct(ids[-1], ids[0] - 1, by_id, loop_stamp_ns)
         self._n_loops += 1
-        self.get_logger().info(
-            f"loop correction applied to keyframes {ids[0]}..{len(kfs) - 1}, map re-optimised in {step.map_ms:.0f} ms"
-        )
-        self._publish_update(step.changed_block_ids | self._unsent_blocks, int(kfs[len(kfs) - 1].stamp_ns))
-        self._unsent_blocks.clear()
+        self.get_logger().info(f"loop correction of keyframes {ids[0]}..{ids[-1]} handed to the mapper")
         return True
 
     def _publish_loaded_map(self) -> str:
         if len(self.backend.keyframes):
             self._base_timer.cancel()  # the map is moving on: trackers get it from the updates now
             return "not sent: keyframes have arrived"
-        data = map_update.encode(self.block_map, range(len(self.block_map)), 1, -1, [], np.zeros((0, 4, 4)))
-        self.pub_update.publish(UInt8MultiArray(data=data))
-        self._version = max(self._version, 1)
-        return f"{len(self.block_map)} blocks sent"
-
-    def _publish_update(self, block_ids, ack_stamp_ns: int) -> None:
-        kfs = self.backend.keyframes
-        self._version += 1
         data = map_update.encode(
-            self.block_map,
-            block_ids,
-            self._version,
-            ack_stamp_ns,
-            [kf.stamp_ns for kf in kfs.keyframes],
-            kfs.poses(),
-            self._loop_stamp,
+            map_update.capture(self.block_map, range(len(self.block_map)), 1, -1, [], np.zeros((0, 4, 4)))
         )
         self.pub_update.publish(UInt8MultiArray(data=data))
+        return f"{len(self.block_map)} blocks sent"
+
+    def _publish_update(self, update: map_update.MapUpdate) -> None:
+        # this node numbers what it sends (the loaded map is version 1)
+        self._version += 1
+        update.version = self._version
+        self.pub_update.publish(UInt8MultiArray(data=map_update.encode(update)))
 
     # ------------------------------------------------------------------ outputs (worker thread)
 
@@ -278,11 +295,15 @@ class MapperNode(NebNode):
     # ------------------------------------------------------------------ shutdown
 
     def finish(self) -> None:
-        """Finish the keyframes already received, then write map, mesh, trajectory and config."""
-        while self._assembler.has_ready:  # keyframes and loop corrections that arrived before the stop
-            self._integrate(self._assembler.pop_ready()[0])
-        for loop in self._loops:
+        """Finish the keyframes and loop corrections already received, then write map, mesh, trajectory
+        and config."""
+        with self.cond:
+            ready, loops, _ = self.take_work()
+        for parts in ready:
+            self._submit(parts)
+        for loop in self._waiting_loops + loops:
             self._correct(*loop)
+        self.side.close(self._join_timeout_s)
         if len(self.backend.keyframes) == 0:
             self.final_log("neb_slam mapper stopped before any keyframe: nothing to write", "WARN")
             return
@@ -297,11 +318,11 @@ class MapperNode(NebNode):
             written.append(self.map_outputs.save_mesh(ack_timeout_s=FINAL_MESH_ACK_S))
         except Exception as exc:
             self.final_log(f"mesh not written: {type(exc).__name__}: {exc}", "WARN")
+        p = self._progress
         self.final_log(
             f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} "
-            f"blocks, {self._n_mapping_steps} mapping steps "
-            f"({self._map_ms / max(self._n_mapping_steps, 1):.0f} ms each), {self._n_loops} loop "
-            f"corrections; wrote {', '.join(Path(w).name for w in written)} to {self.out}"
+            f"blocks, {p.mapping_steps} mapping steps and {p.background_chunks} background chunks, "
+            f"{self._n_loops} loop corrections; wrote {', '.join(Path(w).name for w in written)} to {self.out}"
         )
 
 

@@ -5,7 +5,9 @@ worker thread beside the executor's. The executor thread only runs callbacks: th
 the node's queues under :attr:`NebNode.cond` and notify it. The worker owns the engine state (the map,
 the keyframes), so nothing else touches it; services and timers that need that state (``save_mesh``,
 ``save_map``, the periodic mesh) are handed to the worker as requests (:meth:`NebNode.worker_service`,
-:meth:`NebNode.worker_timer`) and, for a service, the executor thread waits for the worker's answer.
+:meth:`NebNode.worker_timer`) and, for a service, the executor thread waits for the worker's answer. A
+node whose engine runs threads of its own (the ``mapper``'s mapping side) names the lock they change the
+state under (:meth:`NebNode.state_lock`), and requests run holding it.
 
 A subclass declares its parameters through the constructor (the engine config and its options
 dataclass), says what it waits for (:meth:`~NebNode.has_work`), takes it under the lock
@@ -22,6 +24,7 @@ something else shut it down.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 import time
@@ -159,6 +162,11 @@ class NebNode(Node):
     def finish(self) -> None:
         """Write the node's outputs after the worker stopped (in the thread that called :meth:`close`)."""
 
+    def state_lock(self) -> contextlib.AbstractContextManager:
+        """Held while a request (a service, a timer's work) runs: a node whose engine state also changes in
+        threads of its own returns the lock those threads hold while they change it (default: none)."""
+        return contextlib.nullcontext()
+
     # ------------------------------------------------------------------ the worker
 
     @property
@@ -203,7 +211,8 @@ class NebNode(Node):
                 request.reply.append((False, "the node is shutting down"))
             else:
                 try:
-                    request.reply.append((True, request.handler()))
+                    with self.state_lock():
+                        request.reply.append((True, request.handler()))
                 except Exception as exc:  # reported to the caller; the node goes on
                     request.reply.append((False, f"{type(exc).__name__}: {exc}"))
                     self.get_logger().error(f"{request.key} failed: {type(exc).__name__}: {exc}")

@@ -4,8 +4,10 @@ Subscribes ``rgb/image``, ``depth/image`` and ``rgb/camera_info`` (colour and de
 each frame against its copy of the map (the engine's :class:`~neb_slam_core.slam.Frontend`) and publishes
 ``pose``, ``odometry``, ``path``, the keyframes (``keyframe/*``) and the blocks (``blocks``). The map comes
 from the mapper's ``map_update`` messages. Before frame 2 it waits for the mapper's first update; with
-``map_sync`` (default) it also waits, after each keyframe that triggers mapping, for the update that
-integrates it, so it computes exactly what the one-process engine computes; with ``loop_sync`` it waits,
+``map_sync`` (default) that is the whole first map, and it also waits, after each keyframe that triggers
+mapping, for the update that integrates it, so it computes exactly what the one-process engine computes;
+without, it waits for the first ``live.first_iterations`` steps of the first map only, and tracks the
+newest frame while the mapper works; with ``loop_sync`` it waits,
 after each keyframe, for the loop closer's verdict on it as well. With ``wait_for_map`` it waits for a
 map before its first frame (a mapper continuing a checkpoint, ``map_file``) and tracks that frame
 against it, from its first pose (``ground_truth_topic`` or the identity), instead of starting a new
@@ -247,6 +249,12 @@ class TrackerNode(NebNode):
                 "kept the motion prediction"
             )
 
+    def _first_iterations(self) -> int:
+        """Map-only steps of the first map this tracker waits for: all of ``mapping.first_iterations`` in
+        sync with the mapper (the one-process engine's order), ``live.first_iterations`` otherwise (the
+        mapper fits the rest in the background while this tracker goes on)."""
+        return self.cfg.mapping.first_iterations if self.opt.map_sync else self.cfg.live.first_iterations
+
     def _health_values(self) -> dict[str, object]:
         f = self.frontend
         return {
@@ -269,6 +277,7 @@ class TrackerNode(NebNode):
             r.T_world_cam,
             block_centres(self.block_map),
             self.poses.T_map_world,
+            self._first_iterations() if step.first else None,
         )
         self.pub_kf["rgb"].publish(conversions.rgb_msg(f.rgb, ns, CAMERA_FRAME))
         self.pub_kf["depth"].publish(conversions.depth_msg(f.depth_m, ns, CAMERA_FRAME))

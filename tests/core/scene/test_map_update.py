@@ -41,7 +41,9 @@ def test_layout_sizes_are_the_documented_ones():
     m = trained()
     poses = np.stack([np.eye(4)] * 2)
     data = map_update.encode(
-        m, [2, 0], version=5, ack_stamp_ns=123, keyframe_stamps_ns=[10, 20], keyframe_poses=poses, loop_stamp_ns=77
+        map_update.capture(
+            m, [2, 0], version=5, ack_stamp_ns=123, keyframe_stamps_ns=[10, 20], keyframe_poses=poses, loop_stamp_ns=77
+        )
     )
     table_numel = m.blocks[0].grid.table.numel()
     n_decoder = sum(p.numel() for p in m.decoders.parameters())
@@ -64,7 +66,7 @@ def test_a_format_1_update_still_reads(header_bytes):
     reader where the blocks start, so both decode (loop stamp -1 without it; no record, which leaves the
     receiver's own record as it was)."""
     m = trained(observed_voxel_m=0.0)  # no record: the blocks are laid out as format 1 lays them out
-    data = map_update.encode(m, [1], 3, 9, [5], np.eye(4)[None], loop_stamp_ns=123)
+    data = map_update.encode(map_update.capture(m, [1], 3, 9, [5], np.eye(4)[None], loop_stamp_ns=123))
     old = bytearray(data[:header_bytes] + data[56:])
     struct.pack_into("<H", old, 4, 1)
     struct.pack_into("<I", old, 40, header_bytes)
@@ -85,7 +87,7 @@ def test_applying_updates_reproduces_the_senders_map_exactly():
     poses[1, :3, 3] = [0.1234567891234, -2.0, 3.5]
     receiver = make_map(seed=99)  # different initial decoders: the update must overwrite them all
     receiver.add_block([0.0, 0.0, 0.0])
-    update = map_update.decode(map_update.encode(sender, [1, 2], 2, 555, [7, 9], poses))
+    update = map_update.decode(map_update.encode(map_update.capture(sender, [1, 2], 2, 555, [7, 9], poses)))
     assert update.version == 2 and update.ack_stamp_ns == 555 and update.block_ids == [1, 2]
     assert map_update.apply(update, receiver) == [1, 2]
     np.testing.assert_array_equal(update.keyframe_poses, poses)  # float64, bit-exact
@@ -105,7 +107,7 @@ def test_applying_updates_reproduces_the_senders_map_exactly():
 def test_decode_accepts_the_buffer_types_of_ros_messages():
     import array
 
-    data = map_update.encode(trained(), [0], 1, -1, [], np.zeros((0, 4, 4)))
+    data = map_update.encode(map_update.capture(trained(), [0], 1, -1, [], np.zeros((0, 4, 4))))
     for buf in (bytearray(data), array.array("B", data), memoryview(data)):
         u = map_update.decode(buf)
         assert u.block_ids == [0] and len(u.keyframe_poses) == 0 and u.ack_stamp_ns == -1
@@ -113,7 +115,7 @@ def test_decode_accepts_the_buffer_types_of_ros_messages():
 
 def test_bad_updates_are_refused_with_what_is_wrong():
     sender = trained()
-    data = map_update.encode(sender, [0, 1, 2], 1, 0, [], np.zeros((0, 4, 4)))
+    data = map_update.encode(map_update.capture(sender, [0, 1, 2], 1, 0, [], np.zeros((0, 4, 4))))
     with pytest.raises(MapUpdateError, match="magic"):
         map_update.decode(b"XXXX" + data[4:])
     with pytest.raises(MapUpdateError, match="header announces"):
@@ -125,7 +127,7 @@ def test_bad_updates_are_refused_with_what_is_wrong():
     with pytest.raises(MapUpdateError, match="header_bytes 12"):
         map_update.decode(data[:40] + struct.pack("<I", 12) + data[44:])
     # a receiver with no blocks cannot take block 1 before block 0 (a lost update)
-    only_later = map_update.decode(map_update.encode(sender, [1], 1, 0, [], np.zeros((0, 4, 4))))
+    only_later = map_update.decode(map_update.encode(map_update.capture(sender, [1], 1, 0, [], np.zeros((0, 4, 4)))))
     with pytest.raises(MapUpdateError, match="an update was lost"):
         map_update.apply(only_later, make_map())
     # a receiver whose block 0 sits elsewhere has diverged from the sender

@@ -94,7 +94,7 @@ class MapUpdate:
         return [b.block_id for b in self.blocks]
 
 
-def encode(
+def capture(
     block_map: BlockMap,
     block_ids,
     version: int,
@@ -102,39 +102,58 @@ def encode(
     keyframe_stamps_ns,
     keyframe_poses,
     loop_stamp_ns: int = -1,
-) -> bytes:
+) -> MapUpdate:
     """The update carrying blocks ``block_ids`` of ``block_map``, its decoders and the keyframe poses
-    ``(K, 4, 4)`` with their stamps ``(K,)``; ``loop_stamp_ns`` names the newest loop correction in it."""
-    ids = sorted(int(i) for i in block_ids)
-    stamps = np.ascontiguousarray(keyframe_stamps_ns, dtype="<i8").reshape(-1)
-    poses = np.ascontiguousarray(keyframe_poses, dtype="<f8").reshape(-1, 4, 4)
+    ``(K, 4, 4)`` with their stamps ``(K,)``, as copies (another thread or process may apply or encode it
+    while the map moves on); ``loop_stamp_ns`` names the newest loop correction in it."""
+    stamps = np.array(keyframe_stamps_ns, dtype=np.int64).reshape(-1)
+    poses = np.array(keyframe_poses, dtype=np.float64).reshape(-1, 4, 4)
     if len(stamps) != len(poses):
         raise ValueError(f"{len(stamps)} keyframe stamps for {len(poses)} poses")
-    decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().numpy()
-    table_numel = block_map.blocks[0].grid.table.numel() if len(block_map) else 0
-    observed_bytes = (block_map.blocks[0].observed.numel() + 7) // 8 if len(block_map) else 0
+    blocks = []
+    for i in sorted(int(b) for b in block_ids):
+        block = block_map.blocks[i]
+        blocks.append(
+            BlockState(
+                i,
+                block.centre.detach().cpu().numpy().astype(np.float32),
+                block.grid.table.detach().cpu().reshape(-1).numpy().copy(),
+                pack_observed(block.observed),
+            )
+        )
+    decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().numpy().copy()
+    return MapUpdate(version, ack_stamp_ns, blocks, decoders, stamps, poses, loop_stamp_ns)
+
+
+def encode(update: MapUpdate) -> bytes:
+    """``update`` in the binary layout of the module docstring."""
+    table_numel = update.blocks[0].table.size if update.blocks else 0
+    observed_bytes = update.blocks[0].observed.size if update.blocks else 0
+    for b in update.blocks:
+        if b.table.size != table_numel or b.observed.size != observed_bytes:
+            raise ValueError(f"block {b.block_id}'s table or record differs in size from the update's first block")
+    stamps = np.ascontiguousarray(update.keyframe_stamps_ns, dtype="<i8").reshape(-1)
+    poses = np.ascontiguousarray(update.keyframe_poses, dtype="<f8").reshape(-1, 4, 4)
     parts = [
         _HEADER.pack(
             MAGIC,
             FORMAT_VERSION,
             0,
-            version,
-            ack_stamp_ns,
-            len(ids),
+            update.version,
+            update.ack_stamp_ns,
+            len(update.blocks),
             table_numel,
-            decoders.size,
+            update.decoders.size,
             len(stamps),
             _HEADER.size + _HEADER_EXTRA.size,
         ),
-        _HEADER_EXTRA.pack(loop_stamp_ns, observed_bytes),
+        _HEADER_EXTRA.pack(update.loop_stamp_ns, observed_bytes),
     ]
-    for i in ids:
-        block = block_map.blocks[i]
-        centre = block.centre.detach().cpu().numpy()
-        parts.append(_BLOCK_HEAD.pack(i, *map(float, centre)))
-        parts.append(block.grid.table.detach().cpu().numpy().astype("<f4", copy=False).tobytes())
-        parts.append(pack_observed(block.observed).tobytes())
-    parts += [decoders.astype("<f4", copy=False).tobytes(), stamps.tobytes(), poses.tobytes()]
+    for b in sorted(update.blocks, key=lambda b: b.block_id):
+        parts.append(_BLOCK_HEAD.pack(b.block_id, *map(float, b.centre_world)))
+        parts.append(np.asarray(b.table).astype("<f4", copy=False).tobytes())
+        parts.append(np.asarray(b.observed, dtype=np.uint8).tobytes())
+    parts += [np.asarray(update.decoders).astype("<f4", copy=False).tobytes(), stamps.tobytes(), poses.tobytes()]
     return b"".join(parts)
 
 

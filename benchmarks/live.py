@@ -30,6 +30,7 @@ Examples::
     .venv/bin/python benchmarks/live.py --runs 3 --json live.json
     .venv/bin/python benchmarks/live.py --bag bags/demo_scene_bag --config synthetic --offline-config synthetic
     .venv/bin/python benchmarks/live.py --only one_process cli_live --skip-offline
+    .venv/bin/python benchmarks/live.py --only one_process --skip-offline --set mapping.iterations=10
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "neb_slam_ros"))
 
@@ -117,7 +119,7 @@ def figures_of(run_dir: Path, metrics: dict, live: bool) -> dict:
     return out
 
 
-def run_cli(bag: Path, out: Path, config: str, live: bool, rate: float) -> dict:
+def run_cli(bag: Path, out: Path, config: str, live: bool, rate: float, overrides: list[str]) -> dict:
     cmd = [
         sys.executable,
         "-m",
@@ -132,16 +134,20 @@ def run_cli(bag: Path, out: Path, config: str, live: bool, rate: float) -> dict:
     ]
     if live:
         cmd += ["--live", "--rate", str(rate)]
+    if overrides:
+        cmd += ["--set", *overrides]
     code = subprocess.run(cmd, stdout=subprocess.DEVNULL).returncode
     if not (out / "metrics.json").is_file():
         sys.exit(f"neb-slam run failed (exit code {code}): {' '.join(cmd)}")
     return figures_of(out, json.loads((out / "metrics.json").read_text()), live)
 
 
-def run_suite(bag: Path, out: Path, config: str, one_process: bool, rate: float) -> dict:
+def run_suite(bag: Path, out: Path, config: str, one_process: bool, rate: float, overrides: list[str]) -> dict:
     from neb_slam_ros.suite import launch
 
-    run = launch(bag, out, config, one_process=one_process, live=True, rate=rate)
+    # the nodes take config values as dotted parameters of their YAML type
+    params = {k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in overrides)}
+    run = launch(bag, out, config, one_process=one_process, live=True, rate=rate, extra_params=params)
     bad = {k: v for k, v in run.exit_codes.items() if v != 0}
     if bad:
         print(f"warning: non-zero exits {bad} (logs in {out / 'logs'})", file=sys.stderr)
@@ -170,10 +176,19 @@ def main() -> None:
     p.add_argument("--skip-offline", action="store_true", help="no offline reference")
     p.add_argument("--out", type=Path, help="folder of the run directories (default runs/live-<date-time>)")
     p.add_argument("--json", type=Path, help="a copy of the stamped figures (see benchmarks/results/)")
+    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", help="config overrides of the live entries")
     args = p.parse_args()
+    if bad := [o for o in args.set if "=" not in o]:
+        p.error(f"--set takes KEY=VALUE, got {bad[0]!r}")
     bag = args.bag or default_bag()
     out = args.out or REPO / "runs" / f"live-{time.strftime('%Y%m%d-%H%M%S')}"
-    figures: dict = {"bag": str(bag), "config": args.config, "rate": args.rate, "cpus": os.cpu_count()}
+    figures: dict = {
+        "bag": str(bag),
+        "config": args.config,
+        "overrides": args.set,
+        "rate": args.rate,
+        "cpus": os.cpu_count(),
+    }
     per_entry: dict[str, list[dict]] = {e: [] for e in args.only}
     for r in range(args.runs):
         for entry in args.only:
@@ -181,9 +196,9 @@ def main() -> None:
             run_dir = out / f"{entry}-{r}"
             t0 = time.perf_counter()
             if entry == "cli_live":
-                f = run_cli(bag, run_dir, args.config, True, args.rate)
+                f = run_cli(bag, run_dir, args.config, True, args.rate, args.set)
             else:
-                f = run_suite(bag, run_dir, args.config, entry == "one_process", args.rate)
+                f = run_suite(bag, run_dir, args.config, entry == "one_process", args.rate, args.set)
             f["load_average_before"] = load
             f["wall_s"] = round(time.perf_counter() - t0, 1)
             per_entry[entry].append(f)
@@ -192,7 +207,7 @@ def main() -> None:
         figures[entry] = median_entry(runs)
     if not args.skip_offline:
         load = round(os.getloadavg()[0], 2)
-        f = run_cli(bag, out / "offline", args.offline_config, False, args.rate)
+        f = run_cli(bag, out / "offline", args.offline_config, False, args.rate, [])
         f.update(config=args.offline_config, load_average_before=load)
         figures["offline"] = f
     print(

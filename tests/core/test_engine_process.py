@@ -5,19 +5,27 @@ import sys
 import threading
 
 import pytest
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from neb_slam_core.engine_process import SWITCH_INTERVAL_S, lower_thread_priority, prepare_engine_process, usable_cores
 
 
-def test_prepare_shortens_the_gil_turns_and_can_run_twice():
+def blas_threads() -> list[int]:
+    return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+
+def test_prepare_shortens_the_gil_turns_limits_blas_and_can_run_twice():
     before = sys.getswitchinterval()
-    try:
-        assert prepare_engine_process("reference") >= 0.0
-        assert sys.getswitchinterval() == SWITCH_INTERVAL_S
-        assert prepare_engine_process("auto") >= 0.0
-        assert sys.getswitchinterval() == SWITCH_INTERVAL_S
-    finally:
-        sys.setswitchinterval(before)
+    with threadpool_limits(2, user_api="blas"):  # the pools as a two-core process starts them; restored after
+        assert blas_threads() and max(blas_threads()) > 1  # numpy's OpenBLAS is loaded and multi-threaded
+        try:
+            assert prepare_engine_process("reference") >= 0.0
+            assert sys.getswitchinterval() == SWITCH_INTERVAL_S
+            assert blas_threads() == [1] * len(blas_threads())
+            assert prepare_engine_process("auto") >= 0.0
+            assert sys.getswitchinterval() == SWITCH_INTERVAL_S
+        finally:
+            sys.setswitchinterval(before)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")

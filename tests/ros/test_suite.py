@@ -116,6 +116,10 @@ def _check(run, seen, logs, offline, small_bag: Path) -> None:
     ate_suite, ate_offline = _ate_cm(est, frames), _ate_cm(traj_ref, frames)
     assert abs(ate_suite - ate_offline) <= max(0.1 * ate_offline, 0.2), (ate_suite, ate_offline)
     assert abs(run.metrics["ate_rmse_cm"] - ate_suite) < 1e-3
+    # lockstep: every frame tracked, none dropped (the separate tracker's summary line, or the slam's metrics)
+    assert run.metrics["frames_dropped"] == 0
+    assert run.metrics.get("frames_tracked", run.metrics["n_frames"]) == N_FRAMES
+    assert run.metrics["n_tracking_failures"] == 0
     # the shutdown files exist and load
     block_map, extra = load_map(run.run_dir / "map.pt")
     assert len(block_map) == len(seen["block_ids"])

@@ -8,6 +8,12 @@ Two things are done once, before the first frame arrives, by whoever owns the pr
   it back. A thread that wants it back waits until the holder's turn ends, up to the interpreter's switch
   interval (5 ms by default) whenever another thread runs Python: hundreds of operations per tracked
   frame then wait that long each. :data:`SWITCH_INTERVAL_S` shortens the turns.
+- **One BLAS thread.** numpy and scipy call OpenBLAS, whose pool threads busy-wait for the next call
+  after each one. The engine's BLAS calls are small (the loop closer's pose fits, the feature
+  prediction), so a second thread gains nothing there, while its spinning, at the priority of the
+  thread that started the pool, takes a core from tracking and mapping. :func:`prepare_engine_process`
+  limits BLAS to the calling thread (torch's own intra-op threads are set per engine thread, see
+  ``live.torch_threads``).
 - **One-time costs paid at start.** The first torch optimizer imports the parts of torch it needs
   (seconds), the first backward pass starts autograd's engine, and the map's C++ kernels load. Done at
   start, none of it delays the first frame.
@@ -25,6 +31,7 @@ import threading
 import time
 
 import torch
+from threadpoolctl import threadpool_limits
 
 #: the interpreter's switch interval in an engine process (Python's default: 0.005 s)
 SWITCH_INTERVAL_S = 0.0005
@@ -36,6 +43,7 @@ def prepare_engine_process(grid_backend: str = "auto") -> float:
     to call more than once."""
     t0 = time.perf_counter()
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    threadpool_limits(1, user_api="blas")
     p = torch.zeros(2, requires_grad=True)
     optimizer = torch.optim.Adam([p], lr=1e-3, fused=True)  # the engine's optimizers are fused Adams
     (p * p).sum().backward()

@@ -107,8 +107,8 @@ def launch(
         }
     else:
         sync = {"map_sync": not live, "loop_sync": not live}
-        # the mapper writes trajectory.txt from the tracker's latest path and stops first: the tracker
-        # publishes its path after every frame, so that the latest one holds the last frame
+        # the mapper writes trajectory.txt from the tracker's latest path: the tracker publishes its path
+        # after every frame, so that the latest one holds the last frame
         plan = {
             "mapper": {**engine, **resume, "output_dir": str(out), "mesh_period_s": mesh_period_s},
             "loop_closer": engine,
@@ -131,9 +131,9 @@ def launch(
         driver = "slam" if one_process else "bag_replay"
         run.exit_codes[driver] = procs[driver].wait()  # the replay ends the process when the bag ends
         run.wall_s = time.perf_counter() - t0
-        # the loop closer checks its last keyframes, then the mapper finishes its keyframes and corrections
-        # and writes its files
-        for node in ("loop_closer", "mapper", "tracker"):
+        # the tracker stops with the input (frames still queued count as dropped), the loop closer checks
+        # its last keyframes, then the mapper finishes its keyframes and corrections and writes its files
+        for node in ("tracker", "loop_closer", "mapper"):
             if node in procs:
                 procs[node].send_signal(signal.SIGINT)
                 run.exit_codes[node] = procs[node].wait(STOP_TIMEOUT_S)
@@ -156,20 +156,21 @@ def launch(
 
 
 _TRACKER_SUMMARY = re.compile(
-    r"tracker stopped: (\d+) frames tracked, .* (\d+) dropped, .*; (\d+) frames in, "
+    r"tracker stopped: (\d+) frames tracked \((\d+) failed\), .* (\d+) dropped, .*; (\d+) frames in, "
     r"mapping lag (\d+) \(max (\d+)\)"
 )
 
 
 def tracker_summary(log_text: str) -> dict:
-    """What the tracker's last log line says: frames tracked, in and dropped, the mapping lag at the end and
-    its maximum (empty when the line is missing)."""
+    """What the tracker's last log line says: frames tracked, failed, in and dropped, the mapping lag at the
+    end and its maximum (empty when the line is missing)."""
     found = _TRACKER_SUMMARY.findall(log_text)
     if not found:
         return {}
-    tracked, dropped, frames_in, lag, lag_max = map(int, found[-1])
+    tracked, failed, dropped, frames_in, lag, lag_max = map(int, found[-1])
     return {
         "frames_tracked": tracked,
+        "n_tracking_failures": failed,
         "frames_in": frames_in,
         "frames_dropped": dropped,
         "mapping_lag_end": lag,

@@ -44,11 +44,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "neb_slam_ros"))
 
 from common import REPO, TUM, record
+
+from neb_slam_core.config_io import load_config
+from neb_slam_core.errors import ConfigError
 
 ENTRIES = ("one_process", "separate", "cli_live")
 
@@ -145,8 +147,8 @@ def run_cli(bag: Path, out: Path, config: str, live: bool, rate: float, override
 def run_suite(bag: Path, out: Path, config: str, one_process: bool, rate: float, overrides: list[str]) -> dict:
     from neb_slam_ros.suite import launch
 
-    # the nodes take config values as dotted parameters of their YAML type
-    params = {k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in overrides)}
+    # the nodes take config values as dotted parameters, their text parsed as YAML as the CLI's --set does
+    params = dict(o.split("=", 1) for o in overrides)
     run = launch(bag, out, config, one_process=one_process, live=True, rate=rate, extra_params=params)
     bad = {k: v for k, v in run.exit_codes.items() if v != 0}
     if bad:
@@ -178,8 +180,10 @@ def main() -> None:
     p.add_argument("--json", type=Path, help="a copy of the stamped figures (see benchmarks/results/)")
     p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", help="config overrides of the live entries")
     args = p.parse_args()
-    if bad := [o for o in args.set if "=" not in o]:
-        p.error(f"--set takes KEY=VALUE, got {bad[0]!r}")
+    try:  # a bad key or value ends here, before any run, with the config's own message
+        load_config(args.config, args.set)
+    except ConfigError as exc:
+        p.error(str(exc))
     bag = args.bag or default_bag()
     out = args.out or REPO / "runs" / f"live-{time.strftime('%Y%m%d-%H%M%S')}"
     figures: dict = {

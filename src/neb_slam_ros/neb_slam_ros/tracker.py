@@ -96,7 +96,6 @@ class TrackerNode(NebNode):
         self._waited_since: float | None = None
         self._keyframe_stamps: list[int] = []
         self._lag_max = 0
-        self._n_failed = 0  # frames whose tracking failed
 
         self.input = CameraInput(self, self.input_opt, self.cond, thin=not self.opt.map_sync)
         self.create_subscription(UInt8MultiArray, "map_update", self._on_map_update, qos.events(10))
@@ -245,7 +244,6 @@ class TrackerNode(NebNode):
         self.poses.publish_frame(r, self.input.frame_id)
         self.health.frame(r)
         if not r.tracking_ok:
-            self._n_failed += 1
             self.get_logger().warning(
                 f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
                 "kept the motion prediction"
@@ -300,7 +298,8 @@ class TrackerNode(NebNode):
             self.poses.path.flush()  # the frames of the last period
         n = 0 if self.frontend is None else self.frontend.n_frames
         self.final_log(
-            f"neb_slam tracker stopped: {n} frames tracked ({self._n_failed} failed), {len(self.block_map)} blocks, "
+            f"neb_slam tracker stopped: {n} frames tracked ({self.health.failures} failed), "
+            f"{len(self.block_map)} blocks, "
             f"{self.input.n_dropped} dropped, {self.input.warnings.total} input warnings; "
             f"{self.input.n_accepted} frames in, mapping lag {self.mapping_lag()} (max {self._lag_max})"
         )

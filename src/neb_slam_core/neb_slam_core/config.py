@@ -260,10 +260,10 @@ class TrackingConfig:
     ``prediction`` (ours; ``motion``: the paper's constant velocity, by ``motion_model``): ``features``
     starts tracking from the last tracked frame's pose moved by the relative pose from ORB matches
     between the two frames (the loop detector's geometric check with the ``loop`` ORB and matching
-    settings, :class:`neb_slam_core.loop.motion.FeatureMotion`), and from the motion model's prediction
-    where that check fails. It costs an ORB extraction and a PnP per frame and keeps the prediction
-    within the tracker's basin when frames are far apart (a live engine that drops frames, abrupt turns
-    and stops).
+    settings, :class:`neb_slam_core.loop.motion.FeatureMotion`; its PnP pose where only the current
+    frame's depth disagrees), and from the motion model's prediction where neither verifies. It costs
+    an ORB extraction and a PnP per frame and keeps the prediction within the tracker's basin when
+    frames are far apart (a live engine that drops frames, abrupt turns and stops).
 
     ``gn_stop_step_m`` 0.5 mm: the objective's minimum itself moves by millimetres between two draws of
     the ``n_rays`` pixels, so converging much further than that buys nothing but steps.

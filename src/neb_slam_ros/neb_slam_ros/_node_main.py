@@ -13,6 +13,11 @@ shut the ROS context down at once); then the executor stops, every node's ``clos
 are destroyed while the context is still up, and the context is shut down last: destroying a node
 after its context can crash inside rcl's node teardown. A second Ctrl-C while the nodes close
 interrupts ``close()``; a second SIGTERM ends the process at once.
+
+The executor: rclpy's events executor where rclpy has it (Jazzy from rclpy 7.1.4), else the
+single-threaded one. The single-threaded executor rebuilds its wait set in Python for every callback,
+which at a camera's rate (colour, depth and camera info at 30 Hz) takes the node's process a large share
+of a core and holds the GIL against the node's worker thread; the events executor dispatches from C++.
 """
 
 from __future__ import annotations
@@ -34,6 +39,17 @@ from neb_slam_ros.params import ParameterError
 SPIN_SLICE_S = 0.5
 #: after a stop, how long the executor goes on running callbacks of messages already received
 DRAIN_S = 0.5
+
+
+def _executor(multi_threaded: bool):
+    """The executor :func:`run_nodes` spins (module docstring)."""
+    if multi_threaded:
+        return MultiThreadedExecutor()
+    try:
+        from rclpy.experimental import EventsExecutor
+    except ImportError:
+        return SingleThreadedExecutor()
+    return EventsExecutor()
 
 
 def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None) -> int:
@@ -83,7 +99,7 @@ def run_nodes(
     try:
         # the executor exists before a node logs that it started, so a signal right after that line
         # finds everything in place
-        executor = MultiThreadedExecutor() if multi_threaded else SingleThreadedExecutor()
+        executor = _executor(multi_threaded)
         for make in makers:
             node = make()
             if node is not None:

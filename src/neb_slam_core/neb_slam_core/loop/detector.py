@@ -105,6 +105,9 @@ class GeometricCheck:
         n_matches: ratio-test matches whose candidate keypoint has depth.
         n_inliers: matches consistent with the pose in the query's pixels and depth (both needed).
         reason: why it was rejected ('' when accepted).
+        T_pnp_cand_query: the PnP RANSAC pose (pixels and the candidate's depth only, before the
+            refinement with the query's depth), None when PnP found none.
+        n_pnp_inliers: matches within ``reprojection_error_px`` of that pose (PnP RANSAC's inliers).
     """
 
     accepted: bool
@@ -112,6 +115,8 @@ class GeometricCheck:
     n_matches: int
     n_inliers: int
     reason: str = ""
+    T_pnp_cand_query: np.ndarray | None = None
+    n_pnp_inliers: int = 0
 
 
 @dataclass(frozen=True)
@@ -434,6 +439,7 @@ def geometric_check(
     if not ok or pnp_inliers is None or len(pnp_inliers) < 3:
         return GeometricCheck(False, None, n_matches, 0, "PnP RANSAC found no pose")
     T_query_cand = make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))  # x_query = R x_cand + t
+    pnp = {"T_pnp_cand_query": invert(T_query_cand), "n_pnp_inliers": len(pnp_inliers)}
 
     # Depth check and refinement. From pixels alone, points at similar depths leave a sideways
     # translation and a rotation that cancel each other (40 cm and 5 degrees at 4.5 m on the
@@ -469,5 +475,6 @@ def geometric_check(
             n_matches,
             n_inliers,
             f"{n_inliers} inliers of {n_checkable} matches with depth in both frames",
+            **pnp,
         )
-    return GeometricCheck(True, T_cand_query, n_matches, n_inliers)
+    return GeometricCheck(True, T_cand_query, n_matches, n_inliers, **pnp)

@@ -14,7 +14,12 @@ depend on the motion model, only on the two images overlapping.
 
 It is the loop detector's geometric check (:func:`~.detector.geometric_check`: ratio-test matches, PnP
 RANSAC on the reference's depth, refinement with the current frame's depth) with the loop
-configuration's ORB and matching settings, without the bag of words.
+configuration's ORB and matching settings, without the bag of words. Where the check rejects the pair
+only because the current frame's depth disagrees, its PnP pose is taken when PnP's own inliers pass the
+check's thresholds: a sensor whose colour and depth are not taken at the same instant (a Kinect v1;
+TUM pairs them within 20 ms) samples the keypoints' depths beside their corners during a fast turn,
+which the loop check must refuse, while for a prediction the dense tracking after it (and its failure
+test) is the verification.
 """
 
 from __future__ import annotations
@@ -40,6 +45,12 @@ class FeatureMotion:
 
     def relative_pose(self, current: FrameFeatures, reference: FrameFeatures) -> np.ndarray | None:
         """``T_ref_cur`` (4, 4) float64, the current camera in the reference camera's frame, when the
-        geometric check accepts the pair; else None."""
+        geometric check accepts the pair, or its PnP pose has enough inliers (module docstring); else
+        None."""
         check = geometric_check(current, reference, self.cfg)
-        return check.T_cand_query if check.accepted else None
+        if check.accepted:
+            return check.T_cand_query
+        enough = max(self.cfg.min_inliers, self.cfg.min_inlier_ratio * check.n_matches)
+        if check.T_pnp_cand_query is not None and check.n_pnp_inliers >= enough:
+            return check.T_pnp_cand_query
+        return None

@@ -79,6 +79,30 @@ def test_predict_from_stamps_scales_the_last_tracked_motion():
     assert np.allclose(paper.predict(350 * ms), step)  # after a failure: the previous pose
 
 
+def test_a_fast_turn_shortens_the_gap_to_max_turn_deg():
+    ms = 1_000_000
+    stamps = [(200 + 10 * k) * ms for k in range(1, 31)]  # frames every 10 ms after the last processed one
+    for turned_deg, expected_gap_ms in ((1.0, 300), (4.0, 75), (30.0, 10)):
+        cfg = load_config("ci", overrides=["tracking.motion_model=stamps", "live.max_gap_s=0.3", "live.max_turn_deg=3"])
+        fe = Frontend(cfg, new_block_map(cfg), np.eye(4))
+        turn = screw(np.radians(turned_deg), 0.01)
+        fe.keyframe_poses = [np.eye(4)]
+        fe._frames = [_FramePose(100 * ms, 0, np.eye(4)), _FramePose(200 * ms, 0, turn)]
+        fe._tracked = [0, 1]
+        # 3 degrees at the rate of the last 100 ms: 300 ms (max_gap_s bounds it) at 1 degree, 75 ms at
+        # 4 degrees, 10 ms at 30; the newest frame within that gap of the last one (200 ms)
+        assert fe.next_frame(stamps) == expected_gap_ms // 10 - 1, turned_deg
+    # off (0): max_gap_s alone
+    cfg = load_config("ci", overrides=["tracking.motion_model=stamps", "live.max_gap_s=0.3"])
+    fe = Frontend(cfg, new_block_map(cfg), np.eye(4))
+    fe.keyframe_poses, fe._frames, fe._tracked = (
+        [np.eye(4)],
+        [_FramePose(100 * ms, 0, np.eye(4)), _FramePose(200 * ms, 0, turn)],
+        [0, 1],
+    )
+    assert fe.next_frame(stamps) == 29
+
+
 @pytest.fixture(scope="module")
 def frames(small_scene):
     ds = open_dataset(small_scene)

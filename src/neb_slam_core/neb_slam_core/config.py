@@ -417,7 +417,10 @@ class LiveConfig:
     busy instead of competing for both); the ROS nodes apply it too. ``max_gap_s``: the engine tracks
     the newest frame that arrived, but none more than this after the last processed frame (0: the newest,
     however far): a frame far ahead of the last pose lies outside the tracker's basin, so after a wait
-    (the first map) the engine catches up in steps instead of jumping. ``background_nice``: the mapping
+    (the first map) the engine catches up in steps instead of jumping. ``max_turn_deg``: nor further
+    than the camera turns by this at the rate between the last two tracked frames (0: no bound):
+    feature matches and the tracker's basin span a few degrees, so in a fast turn the engine takes
+    frames closer together, and catches up from the queued frames once the turn slows. ``background_nice``: the mapping
     and loop threads (and the ROS ``mapper`` and ``loop_closer`` nodes' engine threads) run this much
     nicer than tracking (0: as nice as it), so that tracking keeps a core when all are busy
     (:func:`neb_slam_core.engine_process.lower_thread_priority`). ``mapping_process``: mapping and loop
@@ -429,6 +432,7 @@ class LiveConfig:
     chunk_iterations: int = 10
     torch_threads: int = 0
     max_gap_s: float = 0.0
+    max_turn_deg: float = 0.0
     background_nice: int = 0
     mapping_process: bool = True
 

@@ -412,7 +412,24 @@ class Frontend:
         last = self._frames[-1].stamp_ns if self._frames else None
         stamps = self.cfg.tracking.motion_model == "stamps"
         has_velocity = len(self._tracked) >= 2 if stamps else self._ok_streak >= 2
-        return choose_frame(stamps_ns, last, self.cfg.live.max_gap_s, has_velocity)
+        return choose_frame(stamps_ns, last, self._max_gap_s(), has_velocity)
+
+    def _max_gap_s(self) -> float:
+        """``live.max_gap_s``, shortened to the time the camera takes to turn ``live.max_turn_deg`` at the
+        rate between the last two tracked frames (when there are two)."""
+        live = self.cfg.live
+        if live.max_turn_deg <= 0 or len(self._tracked) < 2:
+            return live.max_gap_s
+        i2, i1 = self._tracked
+        dt_s = (self._frames[i1].stamp_ns - self._frames[i2].stamp_ns) * 1e-9
+        if dt_s <= 0:
+            return live.max_gap_s
+        turn = invert(self.pose_of(i2)) @ self.pose_of(i1)
+        turned_deg = float(np.degrees(np.arccos(np.clip((np.trace(turn[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+        if turned_deg <= 0:
+            return live.max_gap_s
+        bound_s = live.max_turn_deg * dt_s / turned_deg
+        return bound_s if live.max_gap_s <= 0 else min(live.max_gap_s, bound_s)
 
     def predict(self, stamp_ns: int) -> np.ndarray:
         """The constant-velocity prediction of the pose of a frame stamped ``stamp_ns`` (the next one).

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from .config import SlamConfig
 from .geometry.rays import backproject_pixels
@@ -418,18 +419,23 @@ class Frontend:
         """``live.max_gap_s``, shortened to the time the camera takes to turn ``live.max_turn_deg`` at the
         rate between the last two tracked frames (when there are two)."""
         live = self.cfg.live
-        if live.max_turn_deg <= 0 or len(self._tracked) < 2:
+        motion = self._tracked_motion() if live.max_turn_deg > 0 else None
+        if motion is None:
             return live.max_gap_s
+        delta, dt_ns = motion
+        turned_deg = float(np.degrees(Rotation.from_matrix(delta[:3, :3]).magnitude()))
+        if dt_ns <= 0 or turned_deg <= 0:
+            return live.max_gap_s
+        bound_s = live.max_turn_deg * dt_ns * 1e-9 / turned_deg
+        return min(live.max_gap_s, bound_s) if live.max_gap_s > 0 else bound_s
+
+    def _tracked_motion(self) -> tuple[np.ndarray, int] | None:
+        """The motion between the last two tracked frames (``inv(T_older) T_newer``) and the nanoseconds
+        between their stamps; None before two frames are tracked."""
+        if len(self._tracked) < 2:
+            return None
         i2, i1 = self._tracked
-        dt_s = (self._frames[i1].stamp_ns - self._frames[i2].stamp_ns) * 1e-9
-        if dt_s <= 0:
-            return live.max_gap_s
-        turn = invert(self.pose_of(i2)) @ self.pose_of(i1)
-        turned_deg = float(np.degrees(np.arccos(np.clip((np.trace(turn[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
-        if turned_deg <= 0:
-            return live.max_gap_s
-        bound_s = live.max_turn_deg * dt_s / turned_deg
-        return bound_s if live.max_gap_s <= 0 else min(live.max_gap_s, bound_s)
+        return invert(self.pose_of(i2)) @ self.pose_of(i1), self._frames[i1].stamp_ns - self._frames[i2].stamp_ns
 
     def predict(self, stamp_ns: int) -> np.ndarray:
         """The constant-velocity prediction of the pose of a frame stamped ``stamp_ns`` (the next one).
@@ -453,14 +459,14 @@ class Frontend:
                 T_prev = self.pose_of(index - 1)
                 return orthonormalize(T_prev @ invert(self.pose_of(index - 2)) @ T_prev)
             return self.pose_of(index - 1)
-        if len(self._tracked) < 2:
+        motion = self._tracked_motion()
+        if motion is None:
             return self.pose_of(self._tracked[-1] if self._tracked else index - 1)
-        i2, i1 = self._tracked
-        T1, T2 = self.pose_of(i1), self.pose_of(i2)
+        delta, dt_prev = motion
         last = self.last_tracked_stamp_ns
-        dt_prev = last - self._frames[i2].stamp_ns
         scale = (stamp_ns - last) / dt_prev if dt_prev > 0 else 1.0
-        return orthonormalize(T1 @ scale_motion(invert(T2) @ T1, min(max(scale, 0.0), c.max_extrapolation)))
+        step = scale_motion(delta, min(max(scale, 0.0), c.max_extrapolation))
+        return orthonormalize(self.pose_of(self._tracked[-1]) @ step)
 
     def describe(self, frame: RgbdFrame) -> FrameFeatures | None:
         """What :meth:`prediction` matches of a rectified frame: its ORB features with

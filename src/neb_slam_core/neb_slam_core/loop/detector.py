@@ -409,6 +409,12 @@ class LoopDetector:
         return geometric_check(query, cand, self.cfg)
 
 
+def enough_inliers(n_inliers: int, n_pairs: int, cfg: LoopConfig) -> bool:
+    """The geometric check's acceptance rule: at least ``min_inliers`` inliers, and at least
+    ``min_inlier_ratio`` of the ``n_pairs`` matches they were counted among."""
+    return n_inliers >= cfg.min_inliers and n_inliers >= cfg.min_inlier_ratio * n_pairs
+
+
 def geometric_check(
     query: FrameFeatures | KeyframeFeatures, cand: FrameFeatures | KeyframeFeatures, cfg: LoopConfig
 ) -> GeometricCheck:
@@ -468,7 +474,7 @@ def geometric_check(
     n_inliers = int(consistent.sum())
     n_checkable = int(np.count_nonzero(depth_q > 0))  # matches with depth on both sides
     T_cand_query = invert(T_query_cand)
-    if n_inliers < cfg.min_inliers or n_inliers < cfg.min_inlier_ratio * n_checkable:
+    if not enough_inliers(n_inliers, n_checkable, cfg):
         return GeometricCheck(
             False,
             T_cand_query,

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..config import LoopConfig
 from ..types import RgbdFrame
-from .detector import FrameFeatures, frame_features, geometric_check, orb_params
+from .detector import FrameFeatures, enough_inliers, frame_features, geometric_check, orb_params
 from .features import OrbExtractor
 
 
@@ -50,7 +50,6 @@ class FeatureMotion:
         check = geometric_check(current, reference, self.cfg)
         if check.accepted:
             return check.T_cand_query
-        enough = max(self.cfg.min_inliers, self.cfg.min_inlier_ratio * check.n_matches)
-        if check.T_pnp_cand_query is not None and check.n_pnp_inliers >= enough:
+        if check.T_pnp_cand_query is not None and enough_inliers(check.n_pnp_inliers, check.n_matches, self.cfg):
             return check.T_pnp_cand_query
         return None

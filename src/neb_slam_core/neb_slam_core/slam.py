@@ -660,7 +660,7 @@ class Backend:
     def _assign_blocks(self, kf: Keyframe) -> None:
         """Make ``kf`` a keyframe of every block holding more than a tenth of its observed points at its
         current pose, and of no other (the blocks whose newest keyframes get the extra N_a rays)."""
-        pts = torch.as_tensor(kf.observed_points(), dtype=torch.float32, device=self.block_map.device)
+        pts = torch.as_tensor(self.keyframes.observed_points(kf), dtype=torch.float32, device=self.block_map.device)
         block_ids = []
         if len(pts):
             share = self.block_map.contains(pts).float().mean(dim=0)  # (M,)
@@ -698,10 +698,17 @@ def keyframe_points(keyframes: KeyframeStore, rng: np.random.Generator, max_poin
     """World points of the kept pixels of every keyframe in ``keyframes``, float64 ``(K, 3)``; at most
     ``max_points`` of them, drawn with ``rng`` (what culls a mesh to the observed space)."""
     kfs = keyframes.keyframes
-    pts = np.concatenate([kf.observed_points() for kf in kfs]) if kfs else np.zeros((0, 3))
-    if len(pts) > max_points:
-        pts = pts[rng.choice(len(pts), max_points, replace=False)]
-    return pts
+    if not kfs:
+        return np.zeros((0, 3))
+    if keyframes.n_pixels <= max_points:
+        return np.concatenate([keyframes.observed_points(kf) for kf in kfs])
+    # an equal share of each keyframe, so that no more than about max_points points exist at once
+    share = max_points / keyframes.n_pixels
+    parts = []
+    for kf in kfs:
+        pts = keyframes.observed_points(kf)
+        parts.append(pts[rng.random(len(pts)) < share])
+    return np.concatenate(parts)[:max_points]
 
 
 class KnownPoseMapping:
@@ -806,6 +813,32 @@ class Slam:
     def block_revisions(self) -> dict[int, int]:
         """Per block id, how many optimisation calls changed its table (what a mesh re-extracts by)."""
         return self.backend.mapper.revisions
+
+    def memory(self) -> dict[str, int]:
+        """Bytes held by each of the engine's stores (:func:`~neb_slam_core.memory.deep_bytes`):
+        ``keyframes`` (the keyframe store's pixels and poses), ``loop_closer`` (ORB features, bag-of-words
+        vectors, inverted index, depth views, registrations; not the vocabulary), ``frames`` (the
+        frontend's per-frame and per-keyframe poses), ``loops`` (the loop events), ``map`` (the block map)
+        and ``optimiser`` (the mapper's optimiser state). All but ``map`` and ``optimiser`` grow with
+        the keyframes (or frames); those two with the blocks."""
+        from .memory import deep_bytes
+
+        closer = self.loop_closer
+        shared = (self.block_map, self.keyframes)
+        return {
+            "keyframes": deep_bytes(self.keyframes),
+            "loop_closer": 0 if closer is None else deep_bytes(closer, exclude=(closer.detector.vocabulary,)),
+            "frames": deep_bytes(
+                self.frontend._frames,
+                self.frontend._residuals,
+                self.frontend.keyframe_poses,
+                self.frontend._keyframe_frames,
+                self.frontend._keyframe_links,
+            ),
+            "loops": deep_bytes(self.loops),
+            "map": deep_bytes(self.block_map),
+            "optimiser": deep_bytes(self.backend.mapper, exclude=shared),
+        }
 
     def set_keyframe_poses(self, poses: np.ndarray) -> None:
         """Correct the poses ``(K, 4, 4)`` of the first K keyframes (e.g. a loop closure); the frames

@@ -8,7 +8,10 @@ bag's distortion) and, when the bag has ground truth, ``ground_truth/pose``; sta
 ``rate`` 1.0 plays at recorded speed (0: as fast as possible). ``lockstep`` publishes the next frame
 only after the tracker published the pose of the previous one (``pose``): deterministic and lossless on
 a slow machine. ``start``/``count`` select frames; at the end it stops the process, or starts over with
-``loop``.
+``loop``: every pass is stamped after the one before (the frame period later than its last frame), so
+time runs forward as from a camera, and with ``loop_reverse`` every second pass plays the frames
+backwards, so that the camera's motion stays continuous where the recording's end is far from its start
+(long runs over one recording).
 
 Example::
 
@@ -44,6 +47,7 @@ class ReplayOptions:
     start: int = 0
     count: int = 0
     loop: bool = False
+    loop_reverse: bool = False
     wait_for_subscribers_s: float = 60.0
     depth_scale: float = 0.001
     camera_frame_id: str = "camera"
@@ -56,7 +60,8 @@ class ReplayOptions:
         "lockstep_timeout_s": "in lockstep, go on (with a warning) when no pose came within this",
         "start": "first frame to play (0-based)",
         "count": "frames to play (0: all)",
-        "loop": "start over at the end instead of stopping",
+        "loop": "start over at the end instead of stopping (each pass stamped after the one before)",
+        "loop_reverse": "with loop: play every second pass backwards (continuous motion across passes)",
         "wait_for_subscribers_s": "wait this long for the tracker's subscriptions (and, in lockstep, its pose "
         "publisher) before the first frame",
         "depth_scale": "metres per unit of the bag's 16UC1 depth",
@@ -94,6 +99,8 @@ class BagReplayNode(NebNode):
         self.pub_clock = self.create_publisher(Clock, "/clock", 10)
         self._last_pose_ns = -1
         self.n_published = 0
+        self._passes = 0
+        self._last_stamp_ns = 0  # the last stamp of the previous pass
         if self.opt.lockstep:
             self.create_subscription(PoseStamped, "pose", self._on_pose, qos.stream())
         self.start_worker()
@@ -156,14 +163,32 @@ class BagReplayNode(NebNode):
             self.get_logger().error(f"bag_replay failed: {type(exc).__name__}: {exc}")
             request_stop()
 
+    def _pass_stamps(self) -> tuple[range, list[int]]:
+        """This pass's frame indices and their published stamps: the bag's, shifted to follow the previous
+        pass; a reversed pass mirrors the stamps, so the gaps between frames stay the recording's."""
+        reverse = self.opt.loop_reverse and self._passes % 2 == 1
+        indices = self.indices[::-1] if reverse else self.indices
+        raw = [int(self.dataset.stamps_ns[i]) for i in self.indices]
+        if reverse:
+            raw = [raw[0] + raw[-1] - ns for ns in reversed(raw)]
+        if self._passes == 0:
+            self._offset_ns = 0
+        else:
+            period = (raw[-1] - raw[0]) // max(1, len(raw) - 1)
+            self._offset_ns = self._last_stamp_ns + period - raw[0]
+        self._passes += 1
+        stamps = [ns + self._offset_ns for ns in raw]
+        self._last_stamp_ns = stamps[-1]
+        return indices, stamps
+
     def _play_once(self) -> None:
         t0, stamp0 = time.monotonic(), None
         camera, world = self.opt.camera_frame_id, self.opt.world_frame_id
-        for i in self.indices:
+        indices, stamps = self._pass_stamps()
+        for i, ns in zip(indices, stamps):
             if self.stopping:
                 return
             frame = self.dataset[i]
-            ns = frame.stamp_ns
             stamp0 = ns if stamp0 is None else stamp0
             if self.opt.rate > 0:
                 delay = t0 + (ns - stamp0) * 1e-9 / self.opt.rate - time.monotonic()

@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +37,7 @@ from neb_slam_core.io.run_dir import RunLog
 from neb_slam_core.live import LiveSlam
 from neb_slam_core.live_mapping import ProcessMapping
 from neb_slam_core.slam import Slam
-from neb_slam_core.types import RgbdFrame
+from neb_slam_core.types import RgbdFrame, StepResult
 from neb_slam_ros._node_main import run_nodes
 from neb_slam_ros.camera_input import CameraInput, InputOptions
 from neb_slam_ros.frames import FrameOptions, map_alignment
@@ -105,6 +105,9 @@ class SlamNode(NebNode):
         self._t_first: float | None = None
         self.input = CameraInput(self, self.input_opt, self.cond, thin=self.live)
         self._loops_applied = 0
+        #: called in the worker thread after every frame the engine processed, with its result (an
+        #: embedding program's hook: benchmarks sample the engine's memory between frames)
+        self.frame_hooks: list[Callable[[StepResult], None]] = []
         self.poses = PoseOutputs(
             self,
             self.frame_opt,
@@ -202,6 +205,8 @@ class SlamNode(NebNode):
                 f"frame {r.frame_index} ({r.stamp_ns}): tracking failed ({r.failure_reason}); "
                 "kept the motion prediction"
             )
+        for hook in self.frame_hooks:
+            hook(r)
 
     def _health_values(self) -> dict[str, object]:
         slam = self.slam

@@ -105,3 +105,24 @@ def test_no_registration_edges_when_switched_off(vocabulary, loop_views):
         closer.add_keyframe(i, frame_of(views, intr, f))
         closer.close(i, gt[: i + 1], frame_of(views, intr, f))
     assert closer.registrations == {}
+
+
+def test_kept_depth_maps_read_back_in_tenths_of_millimetres(vocabulary):
+    from neb_slam_core.loop.closer import DEPTH_UNIT_M
+    from neb_slam_core.types import Intrinsics
+
+    k = Intrinsics(40.0, 40.0, 15.5, 11.5, 32, 24)
+    rng = np.random.default_rng(2)
+    units = rng.integers(1, 20000, (24, 32))
+    depth = (units / 5000.0).astype(np.float32)  # TUM depth: PNG value / 5000
+    depth[0, 0], depth[2, 2], depth[4, 4] = 0.0, 14.0, np.nan  # no reading; beyond 13.1 m; not finite
+    frame = RgbdFrame(rng.integers(0, 256, (24, 32, 3), dtype=np.uint8), depth, k, 0)
+    closer = LoopCloser(LoopConfig(depth_stride=2), vocabulary, seed=0)
+    closer.add_keyframe(0, frame)
+    T = make_pose(np.eye(3), [1.0, 2.0, 3.0])
+    view = closer.view(0, T)
+    np.testing.assert_array_equal(view.T_world_cam, T)
+    assert view.depth_m.shape == (12, 16) and view.intrinsics.fx == 20.0 and view.intrinsics.cx == 7.75
+    expected = units[::2, ::2] * np.float32(DEPTH_UNIT_M)
+    expected[0, 0] = expected[1, 1] = expected[2, 2] = 0.0
+    np.testing.assert_allclose(view.depth_m, expected, rtol=1e-6)

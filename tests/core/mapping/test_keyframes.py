@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from neb_slam_core.mapping.keyframes import KeyframeStore
 from neb_slam_core.types import Intrinsics, RgbdFrame
@@ -36,3 +37,60 @@ def test_assign_keeps_both_sides_ascending_and_reassigning_replaces():
     assert store.block_keyframes() == {0: [0, 3], 1: [1, 3]}
     store.keyframes_of_block(0).append(9)  # a copy: the index is changed through assign only
     assert store.keyframes_of_block(0) == [0, 3]
+
+
+def _textured_store(n_keyframes: int, pixel_fraction: float = 0.25) -> tuple[KeyframeStore, list[RgbdFrame]]:
+    k = Intrinsics(20.0, 22.0, 7.5, 5.5, 16, 12)
+    rng = np.random.default_rng(7)
+    store, frames = KeyframeStore(pixel_fraction, seed=3), []
+    for i in range(n_keyframes):
+        rgb = rng.integers(0, 256, (12, 16, 3), dtype=np.uint8)
+        depth = rng.uniform(0.5, 4.0, (12, 16)).astype(np.float32)
+        frames.append(RgbdFrame(rgb, depth, k, i))
+        store.add(frames[-1], np.eye(4), i)
+    return store, frames
+
+
+def test_gather_gives_each_kept_pixel_of_its_keyframe():
+    store, frames = _textured_store(5)
+    n = store[0].n_pixels
+    assert n == round(0.25 * 16 * 12) and store.n_pixels == 5 * n
+    dirs, rgb, depth, owner = store.gather(torch.arange(store.n_pixels))
+    assert owner.tolist() == [i for i in range(5) for _ in range(n)]
+    k = frames[0].intrinsics
+    # a pixel's direction is its pinhole ray (z = 1); colour and depth are the image's there
+    u = torch.round(dirs[:, 0] * k.fx + k.cx).long()
+    v = torch.round(dirs[:, 1] * k.fy + k.cy).long()
+    assert torch.all(dirs[:, 2] == 1.0)
+    for i, frame in enumerate(frames):
+        sel = owner == i
+        np.testing.assert_array_equal(rgb[sel].numpy(), frame.rgb[v[sel], u[sel]] / np.float32(255.0))
+        # depth is kept as float16: within half a unit in the last place (2^-11 relative)
+        np.testing.assert_allclose(depth[sel].numpy(), frame.depth_m[v[sel], u[sel]], rtol=2.0**-11)
+    # a keyframe's pixels are drawn without replacement
+    assert len(set(zip(u[owner == 0].tolist(), v[owner == 0].tolist()))) == n
+
+
+def test_draw_from_keyframes_covers_exactly_their_pixels_uniformly():
+    store, _ = _textured_store(6)
+    n = store[0].n_pixels
+    gen = torch.Generator().manual_seed(0)
+    idx = store.draw(30_000, gen, [1, 4])
+    owner = store.gather(idx)[3]
+    assert set(owner.tolist()) == {1, 4}
+    # every pixel of the two keyframes, and only those, with equal chances (30000 / 96 = 312.5 each)
+    expected = set(range(store[1].start, store[1].start + n)) | set(range(store[4].start, store[4].start + n))
+    counts = np.bincount(idx.numpy(), minlength=store.n_pixels)
+    assert set(np.flatnonzero(counts).tolist()) == expected
+    assert counts[sorted(expected)].min() > 312.5 - 5 * np.sqrt(312.5)
+    assert store.draw(10, gen, []).numel() == 0
+    assert store.draw(10, gen).max() < store.n_pixels
+
+
+def test_store_grows_by_its_pixels_and_not_by_copies():
+    from neb_slam_core.mapping.keyframes import BYTES_PER_PIXEL, GROWTH
+
+    store, _ = _textured_store(40)
+    pixel_bytes = BYTES_PER_PIXEL * store.n_pixels
+    # the buffers are never more than GROWTH times what they hold; the rest is per-keyframe records
+    assert pixel_bytes <= store.nbytes() <= GROWTH * pixel_bytes + 40 * 200

@@ -15,20 +15,27 @@ Each keyframe is also registered against the ``register_neighbours`` keyframes b
 fit's objective through their depth maps, starting from the relative pose tracking gave: the pose
 graph's registration edges (:func:`~neb_slam_core.loop.correction.propagate_correction`). A
 registration is kept when it passes the same tests as a loop fit (RMS and share of valid pixels).
+
+A keyframe's depth map (every ``depth_stride``-th pixel) is kept PNG-compressed, in steps of 0.2 mm
+(TUM's depth unit) up to 13.1 m (farther readings count as none), and decoded when a fit reads it: a
+fraction of its raw size, for a map that every keyframe adds to and only the registrations and loop fits
+read.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
-
+import cv2
 import numpy as np
 
 from ..config import LoopConfig
 from ..geometry.se3 import invert
-from ..types import LoopEvent, RgbdFrame
+from ..types import Intrinsics, LoopEvent, RgbdFrame
 from .correction import DepthView, correction_size, fit_loop_pose, propagate_correction, sample_pixels, strided_view
 from .detector import LoopDetector
 from .vocabulary import Vocabulary
+
+#: the unit of the kept depth maps (metres): TUM's, so its depth is kept exactly
+DEPTH_UNIT_M = 1.0 / 5000.0
 
 
 class LoopCloser:
@@ -38,7 +45,9 @@ class LoopCloser:
         self.cfg = cfg
         self.detector = LoopDetector(cfg, vocabulary)
         self.rng = np.random.default_rng(seed)
-        self._views: dict[int, DepthView] = {}  # strided depth; the pose is filled in at query time
+        # per keyframe: strided depth as PNG and its camera; a view's pose is filled in when it is read
+        self._views: dict[int, tuple[bytes, Intrinsics]] = {}
+        self._order: list[int] = []  # keyframe ids as added
         #: registration edges: (i, j) -> inv(T_i) T_j measured by depth registration of j against i
         self.registrations: dict[tuple[int, int], np.ndarray] = {}
 
@@ -48,7 +57,21 @@ class LoopCloser:
     def add_keyframe(self, keyframe_id: int, frame: RgbdFrame) -> None:
         """Describe and store keyframe ``keyframe_id`` (a rectified frame); keyframes come in order."""
         self.detector.add_keyframe(keyframe_id, frame.stamp_ns, frame.rgb, frame.depth_m, frame.intrinsics)
-        self._views[int(keyframe_id)] = strided_view(np.eye(4), frame.depth_m, frame.intrinsics, self.cfg.depth_stride)
+        view = strided_view(np.eye(4), frame.depth_m, frame.intrinsics, self.cfg.depth_stride)
+        units = np.rint(view.depth_m / DEPTH_UNIT_M)
+        units[~(units <= np.iinfo(np.uint16).max)] = 0  # beyond the range (or not finite): no reading
+        ok, png = cv2.imencode(".png", units.astype(np.uint16))
+        if not ok:
+            raise RuntimeError(f"LoopCloser: could not encode the depth of keyframe {keyframe_id}")
+        self._views[int(keyframe_id)] = (png.tobytes(), view.intrinsics)
+        self._order.append(int(keyframe_id))
+
+    def view(self, keyframe_id: int, T_world_cam: np.ndarray) -> DepthView:
+        """Keyframe ``keyframe_id``'s kept depth map at pose ``T_world_cam``."""
+        png, intrinsics = self._views[int(keyframe_id)]
+        units = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+        depth = units.astype(np.float32) * np.float32(DEPTH_UNIT_M)
+        return DepthView(np.asarray(T_world_cam, dtype=np.float64), depth, intrinsics)
 
     def close(
         self, keyframe_id: int, poses: np.ndarray, frame: RgbdFrame
@@ -66,7 +89,7 @@ class LoopCloser:
         r1 = loops[0]
         T_old = poses[keyframe_id]
         T_init = poses[r1.keyframe_id] @ r1.T_cand_query
-        views = [replace(self._views[i], T_world_cam=np.asarray(poses[i], dtype=np.float64)) for i in ids]
+        views = [self.view(i, poses[i]) for i in ids]
         pixels, depths = sample_pixels(frame.depth_m, cfg.correction_pixels, self.rng)
         fit = fit_loop_pose(T_init, pixels, depths, frame.intrinsics, views, loss_scale_px=1.0)
         cm, deg = correction_size(T_old, fit.T_world_cam)
@@ -103,8 +126,8 @@ class LoopCloser:
         before ``keyframe_id`` (added; ``frame`` is it), starting from the relative poses in ``poses``
         (K, 4, 4). :meth:`close` does this first."""
         cfg = self.cfg
-        order = list(self._views)
-        position = order.index(int(keyframe_id))
+        order = self._order
+        position = len(order) - 1 if order[-1] == int(keyframe_id) else order.index(int(keyframe_id))
         earlier = order[max(0, position - cfg.register_neighbours) : position]
         if not earlier:
             return
@@ -112,7 +135,7 @@ class LoopCloser:
         T_now = np.asarray(poses[keyframe_id], dtype=np.float64)
         for i in earlier:
             T_i = np.asarray(poses[i], dtype=np.float64)
-            view = replace(self._views[i], T_world_cam=T_i)
+            view = self.view(i, T_i)
             fit = fit_loop_pose(T_now, pixels, depths, frame.intrinsics, [view], loss_scale_px=1.0)
             if fit.rms_px <= cfg.max_fit_rms_px and fit.n_valid >= cfg.min_valid_share * len(pixels):
                 self.registrations[(int(i), int(keyframe_id))] = invert(T_i) @ fit.T_world_cam

@@ -1,5 +1,13 @@
 """The keyframe store: a random subset of each keyframe's pixels (as Co-SLAM keeps them), its pose, and
-which blocks each keyframe belongs to."""
+which blocks each keyframe belongs to.
+
+The kept pixels of all keyframes live in three flat buffers: pixel coordinates (int16), colour (uint8)
+and depth (float16: 0.05 % of the depth, far below any depth sensor's noise), 9 bytes per pixel; a
+keyframe is a range of them. Ray directions are recomputed from the coordinates and the keyframe's
+intrinsics when pixels are drawn. So the store grows by ``9 * pixel_fraction * width * height`` bytes
+per keyframe (138 KB at 640x480 and the default 5 %). The buffers grow by a quarter when full: at most a
+quarter of them is spare, and each pixel is copied four times over a run on average.
+"""
 
 from __future__ import annotations
 
@@ -10,8 +18,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..render.rays import PixelSamples, sample_pixels
-from ..types import RgbdFrame
+from ..types import Intrinsics, RgbdFrame
+
+#: bytes the store keeps per pixel: coordinates (2 x int16), colour (3 x uint8), depth (float16)
+BYTES_PER_PIXEL = 2 * 2 + 3 + 2
+#: how much the pixel buffers grow when full
+GROWTH = 1.25
 
 
 @dataclass
@@ -23,7 +35,8 @@ class Keyframe:
         frame_index: index of the frame in the input sequence.
         stamp_ns: its time stamp.
         T_world_cam: current pose estimate (float64 4x4), refined by mapping and loop closure.
-        pixels: the kept pixels (camera-frame rays with colour and depth).
+        intrinsics: its (rectified, pinhole) camera.
+        start, n_pixels: its kept pixels are ``start .. start + n_pixels`` of the store's buffers.
         block_ids: the blocks it belongs to, ascending (set through :meth:`KeyframeStore.assign`).
     """
 
@@ -31,27 +44,28 @@ class Keyframe:
     frame_index: int
     stamp_ns: int
     T_world_cam: np.ndarray
-    pixels: PixelSamples
+    intrinsics: Intrinsics
+    start: int
+    n_pixels: int
     block_ids: list[int] = field(default_factory=list)
-
-    def observed_points(self) -> np.ndarray:
-        """``(K, 3)`` world points of the kept pixels with depth (float64)."""
-        px = self.pixels
-        ok = px.depth_m > 0
-        pts = (px.dirs_cam[ok] * px.depth_m[ok, None]).double().cpu().numpy()
-        return pts @ self.T_world_cam[:3, :3].T + self.T_world_cam[:3, 3]
 
 
 class KeyframeStore:
-    """All keyframes, with their pixels concatenated for fast random ray draws, and the index of the
-    keyframes that belong to each block (mapping draws its extra N_a rays from the newest block's)."""
+    """All keyframes, their kept pixels in flat buffers for fast random ray draws (module docstring), and
+    the index of the keyframes that belong to each block (mapping draws its extra N_a rays from the
+    newest block's)."""
 
     def __init__(self, pixel_fraction: float, seed: int = 0, device: torch.device | str = "cpu"):
         self.pixel_fraction = pixel_fraction
         self.rng = np.random.default_rng(seed)
         self.device = device
         self.keyframes: list[Keyframe] = []
-        self._flat: tuple[torch.Tensor, ...] | None = None
+        self._n = 0  # pixels in use
+        self._uv = torch.zeros((0, 2), dtype=torch.int16, device=device)
+        self._rgb = torch.zeros((0, 3), dtype=torch.uint8, device=device)
+        self._depth = torch.zeros(0, dtype=torch.float16, device=device)
+        self._starts = torch.zeros(0, dtype=torch.long, device=device)  # per keyframe, its first pixel
+        self._camera = torch.zeros((0, 4), dtype=torch.float32, device=device)  # per keyframe fx, fy, cx, cy
         self._block_keyframes: dict[int, list[int]] = {}  # block id -> keyframe ids, ascending
 
     def __len__(self) -> int:
@@ -60,14 +74,53 @@ class KeyframeStore:
     def __getitem__(self, i: int) -> Keyframe:
         return self.keyframes[i]
 
+    @property
+    def n_pixels(self) -> int:
+        """Kept pixels of all keyframes."""
+        return self._n
+
+    def nbytes(self) -> int:
+        """Bytes the store holds: pixel buffers (with their spare capacity) and per-keyframe records."""
+        buffers = (self._uv, self._rgb, self._depth, self._starts, self._camera)
+        poses = 16 * 8 * len(self.keyframes)
+        index = 8 * sum(len(kf.block_ids) for kf in self.keyframes)
+        return sum(t.element_size() * t.nelement() for t in buffers) + poses + 2 * index
+
     def add(self, frame: RgbdFrame, T_world_cam: np.ndarray, frame_index: int) -> Keyframe:
         h, w = frame.depth_m.shape
+        if max(h, w) > np.iinfo(np.int16).max:
+            raise ValueError(f"KeyframeStore: a {w}x{h} image has coordinates beyond int16")
         n = max(1, int(round(self.pixel_fraction * h * w)))
-        px = sample_pixels(frame, n, self.rng, valid_depth_only=False, device=self.device)
-        kf = Keyframe(len(self.keyframes), frame_index, frame.stamp_ns, np.array(T_world_cam, dtype=np.float64), px)
+        pick = self.rng.choice(h * w, size=n, replace=h * w < n)
+        v, u = np.divmod(pick, w)
+        start = self._n
+        self._reserve(start + n)
+        d = self.device
+        self._uv[start : start + n] = torch.as_tensor(np.stack([u, v], axis=1).astype(np.int16), device=d)
+        self._rgb[start : start + n] = torch.as_tensor(frame.rgb.reshape(-1, 3)[pick], device=d)
+        self._depth[start : start + n] = torch.as_tensor(frame.depth_m.reshape(-1)[pick], device=d).half()
+        self._n = start + n
+        k = frame.intrinsics
+        self._starts = torch.cat([self._starts, torch.tensor([start], device=d)])
+        self._camera = torch.cat([self._camera, torch.tensor([[k.fx, k.fy, k.cx, k.cy]], device=d)])
+        kf = Keyframe(
+            len(self.keyframes), frame_index, frame.stamp_ns, np.array(T_world_cam, dtype=np.float64), k, start, n
+        )
         self.keyframes.append(kf)
-        self._flat = None
         return kf
+
+    def _reserve(self, n: int) -> None:
+        """Grow the pixel buffers (by :data:`GROWTH`) to hold ``n`` pixels."""
+        if n <= len(self._depth):
+            return
+        cap = max(n, int(GROWTH * len(self._depth)))
+
+        def grown(t: torch.Tensor) -> torch.Tensor:
+            out = torch.empty((cap, *t.shape[1:]), dtype=t.dtype, device=t.device)
+            out[: self._n] = t[: self._n]
+            return out
+
+        self._uv, self._rgb, self._depth = grown(self._uv), grown(self._rgb), grown(self._depth)
 
     def poses(self) -> np.ndarray:
         """``(K, 4, 4)`` current keyframe poses."""
@@ -76,6 +129,45 @@ class KeyframeStore:
     def set_poses(self, poses: np.ndarray) -> None:
         for kf, T in zip(self.keyframes, poses):
             kf.T_world_cam = np.array(T, dtype=np.float64)
+
+    # ------------------------------------------------------------------ pixels
+
+    def gather(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The kept pixels ``idx`` (indices into all keyframes' pixels, as :meth:`draw` gives them):
+        camera-frame directions ``(N, 3)`` (z = 1), colour in [0, 1] ``(N, 3)``, depth ``(N,)`` and the
+        keyframe id of each ``(N,)``."""
+        owner = torch.searchsorted(self._starts, idx, right=True) - 1
+        cam = self._camera[owner]
+        uv = self._uv[idx].to(torch.float32)
+        x = (uv[:, 0] - cam[:, 2]) / cam[:, 0]
+        y = (uv[:, 1] - cam[:, 3]) / cam[:, 1]
+        dirs = torch.stack([x, y, torch.ones_like(x)], dim=-1)
+        return dirs, self._rgb[idx].float() / 255.0, self._depth[idx].float(), owner
+
+    def draw(self, n: int, generator: torch.Generator, keyframe_ids: list[int] | None = None) -> torch.Tensor:
+        """Indices of ``n`` random kept pixels, for :meth:`gather` (of ``keyframe_ids`` only when given;
+        empty when they hold none)."""
+        if keyframe_ids is None:
+            return torch.randint(self._n, (n,), generator=generator, device=self.device)
+        kfs = [self.keyframes[i] for i in keyframe_ids]
+        counts = torch.tensor([kf.n_pixels for kf in kfs], dtype=torch.long, device=self.device)
+        total = int(counts.sum()) if len(kfs) else 0
+        if total == 0:
+            return torch.zeros(0, dtype=torch.long, device=self.device)
+        # a draw from the keyframes' pixels as one pool: the pool position -> (keyframe, offset in it)
+        j = torch.randint(total, (n,), generator=generator, device=self.device)
+        ends = torch.cumsum(counts, 0)
+        which = torch.searchsorted(ends, j, right=True)
+        starts = torch.tensor([kf.start for kf in kfs], dtype=torch.long, device=self.device)
+        return starts[which] + j - (ends[which] - counts[which])
+
+    def observed_points(self, kf: Keyframe) -> np.ndarray:
+        """``(K, 3)`` world points of ``kf``'s kept pixels with depth (float64)."""
+        idx = torch.arange(kf.start, kf.start + kf.n_pixels, device=self.device)
+        dirs, _, depth, _ = self.gather(idx)
+        ok = depth > 0
+        pts = (dirs[ok] * depth[ok, None]).double().cpu().numpy()
+        return pts @ kf.T_world_cam[:3, :3].T + kf.T_world_cam[:3, 3]
 
     # ------------------------------------------------------------------ blocks
 
@@ -96,27 +188,3 @@ class KeyframeStore:
     def block_keyframes(self) -> dict[int, list[int]]:
         """The whole index: block id -> ids of its keyframes, ascending (blocks without keyframes left out)."""
         return {b: list(ids) for b, ids in sorted(self._block_keyframes.items()) if ids}
-
-    def flat(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """All kept pixels: dirs_cam (P, 3), rgb (P, 3), depth (P,), keyframe index (P,)."""
-        if self._flat is None:
-            kfs = self.keyframes
-            self._flat = (
-                torch.cat([k.pixels.dirs_cam for k in kfs]),
-                torch.cat([k.pixels.rgb for k in kfs]),
-                torch.cat([k.pixels.depth_m for k in kfs]),
-                torch.cat(
-                    [torch.full((len(k.pixels),), k.keyframe_id, dtype=torch.long, device=self.device) for k in kfs]
-                ),
-            )
-        return self._flat
-
-    def draw(self, n: int, generator: torch.Generator, keyframe_ids: list[int] | None = None) -> torch.Tensor:
-        """Indices into :meth:`flat` of ``n`` random kept pixels (from ``keyframe_ids`` only when given)."""
-        _, _, _, owner = self.flat()
-        if keyframe_ids is None:
-            return torch.randint(len(owner), (n,), generator=generator, device=owner.device)
-        pool = torch.isin(owner, torch.as_tensor(keyframe_ids, device=owner.device)).nonzero(as_tuple=True)[0]
-        if len(pool) == 0:
-            return pool
-        return pool[torch.randint(len(pool), (n,), generator=generator, device=owner.device)]

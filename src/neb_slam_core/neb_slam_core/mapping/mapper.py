@@ -83,8 +83,7 @@ class Mapper:
         kfs = self.keyframes
         if len(kfs) == 0 or iterations == 0:
             return MappingResult(0, float("nan"))
-        dirs, rgb, depth, owner = kfs.flat()
-        poses = PoseSet(kfs.poses()).to(dirs.device)
+        poses = PoseSet(kfs.poses()).to(kfs.device)
         pose_opt = None
         if optimise_poses and len(kfs) > fixed_until + 1:
             pose_opt = torch.optim.Adam([poses.delta], lr=self.cfg.pose_lr)
@@ -96,9 +95,10 @@ class Mapper:
             idx = kfs.draw(self.cfg.n_rays, self.generator)
             if newest_kfs and self.cfg.n_rays_newest_block:
                 idx = torch.cat([idx, kfs.draw(self.cfg.n_rays_newest_block, self.generator, newest_kfs)])
-            T = poses.matrices(owner[idx]) if pose_opt is not None else poses.matrices(owner[idx]).detach()
-            origins, d = rays_world(T, dirs[idx])
-            batch = RayBatch(origins, d, rgb[idx], depth[idx])
+            dirs, rgb, depth, owner = kfs.gather(idx)
+            T = poses.matrices(owner) if pose_opt is not None else poses.matrices(owner).detach()
+            origins, d = rays_world(T, dirs)
+            batch = RayBatch(origins, d, rgb, depth)
             self.map_opt.zero_grad()
             if pose_opt is not None:
                 pose_opt.zero_grad(set_to_none=True)

@@ -1,12 +1,14 @@
 """Soak: a bag looped through the one-process ``slam`` node for thousands of frames; memory and time.
 
 The ``slam`` node and ``bag_replay`` run in this process (as ``ros2 run neb_slam_ros slam`` with a ``bag``
-runs them), in lockstep: every frame is processed, in order. The replay loops the bag, every second pass
-backwards (``loop_reverse``), stamped forward in time, so the camera moves continuously through the same
-scene for as long as asked. Every ``--every`` frames, between two frames, the benchmark records the
-process's resident memory (RSS), the bytes of each of the engine's stores
-(:meth:`~neb_slam_core.slam.Slam.memory`, plus the node's per-frame log) and the engine's time of the
-frames since the last sample.
+runs them), in lockstep: every frame is processed, in order, by the node's default engine, the live one
+(tracking in the node's worker thread, mapping and loop closure in their own process beside it;
+``--deterministic``: the deterministic engine, mapping and loop closure between frames). The replay loops
+the bag, every second pass backwards (``loop_reverse``), stamped forward in time, so the camera moves
+continuously through the same scene for as long as asked. Every ``--every`` frames, between two frames,
+the benchmark records the resident memory (RSS) of this process and of the mapping process, the bytes
+of each of the engine's stores (:meth:`~neb_slam_core.live.LiveSlam.memory`, plus the node's per-frame
+log), the mapping lag and the engine's time of the frames since the last sample.
 
 Top-level figures of the JSON:
 
@@ -43,9 +45,12 @@ from common import REPO, record
 from live import default_bag
 
 
-def rss_mb() -> float:
-    """This process's resident memory (Linux ``/proc/self/statm``), MB."""
-    pages = int(Path("/proc/self/statm").read_text().split()[1])
+def rss_mb(pid: int | str = "self") -> float:
+    """A process's resident memory (Linux ``/proc/<pid>/statm``), MB; 0 when it is gone."""
+    try:
+        pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return 0.0
     return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
@@ -76,18 +81,22 @@ class Sampler:
             stores = slam.memory()
             stores["run_log"] = deep_bytes(self.node.run_log)
             recent = self.frame_ms[-self.every :]
+            mapping_pid = getattr(slam, "mapping_pid", None)
+            own, mapping = rss_mb(), 0.0 if mapping_pid is None else rss_mb(mapping_pid)
             self.samples.append(
                 {
                     "frames": n,
-                    "keyframes": len(slam.keyframes),
+                    "keyframes": len(slam.frontend.keyframe_poses),
                     "blocks": len(slam.block_map),
-                    "rss_mb": round(rss_mb(), 2),
+                    "mapping_lag": getattr(getattr(slam, "stats", None), "mapping_lag", 0),
+                    "rss_mb": round(own + mapping, 2),
+                    "rss_mb_mapping": round(mapping, 2),
                     "stores_mb": {k: round(v / 1e6, 4) for k, v in stores.items()},
                     "median_frame_ms": round(float(np.median(recent)), 2),
                 }
             )
             if self._bar is not None:
-                self._bar.set_postfix(kf=len(slam.keyframes), rss_mb=f"{self.samples[-1]['rss_mb']:.0f}")
+                self._bar.set_postfix(kf=self.samples[-1]["keyframes"], rss_mb=f"{self.samples[-1]['rss_mb']:.0f}")
         if n >= self.frames:
             request_stop()
 
@@ -168,6 +177,7 @@ def main() -> int:
     p.add_argument("--json", type=Path, help="a copy of the stamped figures")
     p.add_argument("--results-dir", type=Path, help="where the dated JSON and plot go (default benchmarks/results)")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides (as neb-slam run)")
+    p.add_argument("--deterministic", action="store_true", help="the deterministic engine (live:=false)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args()
     if args.frames < 1 or args.every < 1 or args.window < 1:
@@ -193,6 +203,8 @@ def main() -> int:
         "ground_truth_topic": "ground_truth/pose",
         "output_dir": str(out),
         "mesh_period_s": 0.0,
+        "live": not args.deterministic,
+        "checkpoint_every": 0,
         **dict(o.split("=", 1) for o in args.set),
     }
     ros_args = ["--ros-args"]
@@ -216,6 +228,7 @@ def main() -> int:
     result = {
         "bag": str(bag),
         "config": args.config,
+        "engine": "deterministic" if args.deterministic else "live",
         "overrides": args.set,
         "frames": len(sampler.frame_ms),
         "keyframes": sampler.samples[-1]["keyframes"],
@@ -224,6 +237,7 @@ def main() -> int:
         "ate_cm": metrics.get("ate_rmse_cm"),
         "tracking_failures": metrics.get("n_tracking_failures"),
         "loops_applied": metrics.get("n_loops_applied"),
+        "mapping_lag_max": max(s["mapping_lag"] for s in sampler.samples),
         "wall_s": round(wall_s, 1),
         "load_before": round(load, 2),
         "load_after": round(os.getloadavg()[0], 2),

@@ -384,6 +384,90 @@ def test_engine_crash_writes_what_exists_then_reraises(small_scene, tmp_path, mo
     assert (out / "map.pt").is_file() and not (out / "mesh.ply").exists()
 
 
+def _shared_args(out: Path, small_scene: Path) -> list[str]:
+    """The shared run's arguments, into ``out``."""
+    return [
+        "run",
+        str(small_scene),
+        "--config",
+        "ci",
+        "--out",
+        str(out),
+        "--start",
+        "2",
+        "--stride",
+        "2",
+        "--frames",
+        str(len(SHARED_INDICES)),
+        "--seed",
+        "3",
+        "--recon-points",
+        "20000",
+        "--depth-views",
+        "10",
+    ]
+
+
+def _trajectory_text(run_dir: Path) -> list[str]:
+    return [line for line in (run_dir / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
+
+
+def test_resume_after_a_crash_continues_as_if_uninterrupted(shared_run, small_scene, tmp_path, monkeypatch):
+    """A crash at the 7th frame leaves the checkpoint of the last keyframe; --resume goes on from it, and
+    the poses of all frames equal the uninterrupted shared run's (the engine's state is whole in it)."""
+    _, _, shared_out, _ = shared_run
+    out = tmp_path / "crashed"
+    fail_at(monkeypatch, 6, RuntimeError("boom"))
+    with pytest.raises(RuntimeError, match="boom"):
+        run_cli([*_shared_args(out, small_scene), "--checkpoint-every", "1"])
+    monkeypatch.undo()
+    assert json.loads((out / "metrics.json").read_text())["status"] == "crashed"
+    assert (out / "checkpoint.pt").is_file()
+    code, stdout = run_cli(["run", "--resume", str(out)])
+    assert code == 0 and stdout.strip().splitlines()[-1] == str(out)
+    assert _trajectory_text(out) == _trajectory_text(shared_out)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "complete" and m["n_frames"] == len(SHARED_INDICES)
+    assert len(read_timings(out / "timings.csv")) == len(SHARED_INDICES)
+    assert not (out / "checkpoint.pt").exists()  # a completed run has nothing left to resume
+
+
+def test_sigkill_leaves_a_checkpoint_to_resume(shared_run, small_scene, tmp_path):
+    """A real SIGKILL as soon as a checkpoint exists: the file reads, and the resumed run ends with the
+    uninterrupted run's poses."""
+    _, _, shared_out, _ = shared_run
+    out = tmp_path / "killed"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    package_parent = str(Path(neb_slam_core.__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_parent, env.get("PYTHONPATH")) if p)
+    cmd = [sys.executable, "-m", "neb_slam_core.cli.main", *_shared_args(out, small_scene), "--checkpoint-every", "1"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 300
+        while not (out / "checkpoint.pt").is_file():
+            assert proc.poll() is None and time.monotonic() < deadline, "no checkpoint before the run ended"
+            time.sleep(0.02)
+        proc.kill()
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert not (out / "metrics.json").exists()  # killed: nothing written but the checkpoint
+    code, _ = run_cli(["run", "--resume", str(out)])
+    assert code == 0
+    assert _trajectory_text(out) == _trajectory_text(shared_out)
+
+
+def test_resume_refuses_other_options_and_a_missing_checkpoint(small_scene, tmp_path, capsys):
+    assert main(["run", "--resume", str(tmp_path)]) == 2
+    assert str(tmp_path / "checkpoint.pt") in capsys.readouterr().err
+    assert main(["run", str(small_scene), "--resume", str(tmp_path), "--frames", "3"]) == 2
+    assert "drop source, --frames" in capsys.readouterr().err
+    assert main(["run", "--config", "ci"]) == 2
+    assert "--resume RUN_DIR" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------------------------- bad input
 
 

@@ -226,6 +226,62 @@ def test_the_suite_continues_a_saved_map(small_bag, offline, ros_env, tmp_path, 
     assert f"continuing {map_file}" in logs["slam" if one_process else "mapper"]
 
 
+def test_one_process_slam_killed_half_way_resumes_from_its_checkpoint(small_bag, offline, ros_env, tmp_path):
+    """SIGKILL of the slam node once it has written a checkpoint after its first frames; the same command
+    again (the replay starts over) resumes from it: the frames done before the checkpoint get their stored
+    pose, the rest are processed, and the run directory has a pose for every frame at the uninterrupted
+    run's accuracy."""
+    from neb_slam_core.io.trajectory import read_tum_trajectory
+    from neb_slam_ros.suite import _node_cmd
+
+    _, frames = offline[:2]
+    out = tmp_path / "slam"
+    params = {
+        "config": CONFIG,
+        "seed": 0,
+        "reliable_inputs": True,
+        "ground_truth_topic": "ground_truth/pose",
+        "bag": str(small_bag),
+        "lockstep": True,
+        "rate": 0.0,
+        "output_dir": str(out),
+        "mesh_period_s": 0.0,
+        "live": False,
+        "checkpoint_every": 1,
+    }
+    checkpoint = out / "checkpoint.pt"
+    first_log = tmp_path / "first.log"
+    first = subprocess.Popen(
+        _node_cmd("slam", params), env=ros_env, stdout=first_log.open("w"), stderr=subprocess.STDOUT
+    )
+    try:
+        deadline, seen_ns = time.monotonic() + 300, []
+        # the second checkpoint: a keyframe after the first frame
+        while len(set(seen_ns)) < 2:
+            assert first.poll() is None, first_log.read_text()
+            assert time.monotonic() < deadline, "no second checkpoint"
+            if checkpoint.is_file():
+                seen_ns.append(checkpoint.stat().st_mtime_ns)
+            time.sleep(0.01)
+        first.kill()
+        first.wait()
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert not (out / "trajectory.txt").exists()  # killed: only the checkpoint is there
+    second = subprocess.run(_node_cmd("slam", params), env=ros_env, capture_output=True, text=True, timeout=600)
+    log = second.stdout + second.stderr
+    assert second.returncode == 0 and "Traceback" not in log, log
+    assert f"resuming {checkpoint} after " in log, log
+    est = read_tum_trajectory(out / "trajectory.txt")
+    assert est.stamps_ns.tolist() == [f.stamp_ns for f in frames]
+    ate_ref = _ate_cm(offline[0], frames)
+    assert _ate_cm(est, frames) <= 1.5 * ate_ref, (_ate_cm(est, frames), ate_ref)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["n_frames"] == N_FRAMES and metrics["frames_dropped"] == 0 and metrics["n_tracking_failures"] == 0
+
+
 def test_bad_input_is_warned_about_and_skipped_and_the_tracker_keeps_running(ros_env):
     rclpy = pytest.importorskip("rclpy")
     from rclpy.qos import QoSProfile, ReliabilityPolicy

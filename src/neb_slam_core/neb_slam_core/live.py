@@ -150,6 +150,24 @@ class LiveSlam:
             return keyframe_points(self._final[1], self.frontend.rng, max_points)
         return self._mapping.observed_points(self.cfg.seed, max_points)
 
+    def memory(self) -> dict[str, int]:
+        """Bytes held by each store of the engine (:func:`~neb_slam_core.memory.deep_bytes`): the mapping
+        side's (:meth:`~neb_slam_core.live_mapping.MappingSide.memory`, in its process when it has one),
+        ``frames`` (:meth:`Frontend.memory`), ``tracker_map`` (the tracker's copy of the map) and
+        ``loops``."""
+        from .memory import deep_bytes
+
+        stores = self._mapping.memory() if self._final is None else {}
+        stores.update(
+            frames=self.frontend.memory(), tracker_map=deep_bytes(self._track_map), loops=deep_bytes(self.loops)
+        )
+        return stores
+
+    @property
+    def mapping_pid(self) -> int | None:
+        """The id of the mapping side's process (None: it runs in threads of this one)."""
+        return self._mapping.pid if isinstance(self._mapping, ProcessMapping) else None
+
     # ------------------------------------------------------------------ tracking (the caller's thread)
 
     def process(self, frame: RgbdFrame) -> StepResult:

@@ -180,6 +180,16 @@ class MappingSide:
         with self.map_lock:
             return self.backend.observed_points(np.random.default_rng(seed), max_points)
 
+    def memory(self) -> dict[str, int]:
+        """Bytes of the mapping side's stores (:meth:`Backend.memory`) and of its queues (``queues``)."""
+        from .memory import deep_bytes
+
+        with self.map_lock, self._database_lock:
+            stores = self.backend.memory(self.loop_closer)
+        with self._cond:
+            stores["queues"] = deep_bytes(list(self._to_mapper), list(self._to_loop), list(self._corrections))
+        return stores
+
     def close(self, timeout_s: float) -> tuple[BlockMap, KeyframeStore]:
         """Let the loop thread check the queued keyframes and the mapper integrate them (and apply the
         corrections), stop both; background work that is left (the rest of a re-optimisation) is dropped."""
@@ -471,6 +481,14 @@ class ProcessMapping:
 
     def observed_points(self, seed: int, max_points: int) -> np.ndarray:
         return self._call("observed_points", seed, max_points)
+
+    def memory(self) -> dict[str, int]:
+        return self._call("memory")
+
+    @property
+    def pid(self) -> int | None:
+        """The mapping process's id."""
+        return self._process.pid
 
     def close(self, timeout_s: float) -> tuple[BlockMap, KeyframeStore]:
         """Close the mapping side in the child (as :meth:`MappingSide.close`), take its final map and

@@ -313,6 +313,14 @@ class Frontend:
         )
         return Trajectory(np.array([f.stamp_ns for f in self._frames]), poses)
 
+    def memory(self) -> int:
+        """Bytes of the per-frame and per-keyframe poses the frontend keeps (they grow with the frames)."""
+        from .memory import deep_bytes
+
+        return deep_bytes(
+            self._frames, self._residuals, self.keyframe_poses, self._keyframe_frames, self._keyframe_links
+        )
+
     def set_keyframe_poses(self, poses: np.ndarray) -> None:
         """Corrected poses ``(K, 4, 4)`` of the first K keyframes (from mapping or loop closure). Keyframes
         after them (made since the corrections were computed: another thread or process maps) move
@@ -693,6 +701,21 @@ class Backend:
         """World points of all keyframes' kept pixels (for mesh culling), float64 ``(K, 3)``."""
         return keyframe_points(self.keyframes, rng, max_points)
 
+    def memory(self, loop_closer: LoopCloser | None = None) -> dict[str, int]:
+        """Bytes of the backend's stores and of ``loop_closer``'s: ``keyframes`` (the keyframe store's
+        pixels and poses), ``loop_closer`` (ORB features, bag-of-words vectors, inverted index, depth
+        maps, registrations; not the vocabulary), ``map`` (the block map) and ``optimiser`` (the mapper's
+        optimiser state). The first two grow with the keyframes, the last two with the blocks."""
+        from .memory import deep_bytes
+
+        closer = loop_closer
+        return {
+            "keyframes": deep_bytes(self.keyframes),
+            "loop_closer": 0 if closer is None else deep_bytes(closer, exclude=(closer.detector.vocabulary,)),
+            "map": deep_bytes(self.block_map),
+            "optimiser": deep_bytes(self.mapper, exclude=(self.block_map, self.keyframes)),
+        }
+
 
 def keyframe_points(keyframes: KeyframeStore, rng: np.random.Generator, max_points: int = 2_000_000) -> np.ndarray:
     """World points of the kept pixels of every keyframe in ``keyframes``, float64 ``(K, 3)``; at most
@@ -815,29 +838,14 @@ class Slam:
         return self.backend.mapper.revisions
 
     def memory(self) -> dict[str, int]:
-        """Bytes held by each of the engine's stores (:func:`~neb_slam_core.memory.deep_bytes`):
-        ``keyframes`` (the keyframe store's pixels and poses), ``loop_closer`` (ORB features, bag-of-words
-        vectors, inverted index, depth views, registrations; not the vocabulary), ``frames`` (the
-        frontend's per-frame and per-keyframe poses), ``loops`` (the loop events), ``map`` (the block map)
-        and ``optimiser`` (the mapper's optimiser state). All but ``map`` and ``optimiser`` grow with
-        the keyframes (or frames); those two with the blocks."""
+        """Bytes held by each of the engine's stores (:func:`~neb_slam_core.memory.deep_bytes`): those of
+        :meth:`Backend.memory`, ``frames`` (:meth:`Frontend.memory`) and ``loops`` (the loop events)."""
         from .memory import deep_bytes
 
-        closer = self.loop_closer
-        shared = (self.block_map, self.keyframes)
         return {
-            "keyframes": deep_bytes(self.keyframes),
-            "loop_closer": 0 if closer is None else deep_bytes(closer, exclude=(closer.detector.vocabulary,)),
-            "frames": deep_bytes(
-                self.frontend._frames,
-                self.frontend._residuals,
-                self.frontend.keyframe_poses,
-                self.frontend._keyframe_frames,
-                self.frontend._keyframe_links,
-            ),
+            **self.backend.memory(self.loop_closer),
+            "frames": self.frontend.memory(),
             "loops": deep_bytes(self.loops),
-            "map": deep_bytes(self.block_map),
-            "optimiser": deep_bytes(self.backend.mapper, exclude=shared),
         }
 
     def set_keyframe_poses(self, poses: np.ndarray) -> None:

@@ -4,8 +4,9 @@ Runs the engine on the camera input: by default the live one (:class:`~neb_slam_
 tracking in the node's worker thread on the newest frame, within ``live.max_gap_s`` of the last processed
 one, mapping and loop closure beside it: in a child process with ``live.mapping_process``, started with the
 node so that its start is not the first frame's wait, or in threads of the node's process), or with
-``live:=false`` (and in lockstep replay) :class:`~neb_slam_core.slam.Slam`, every frame in the paper's
-order. It publishes what the separate
+``live:=false`` :class:`~neb_slam_core.slam.Slam`, every frame in the paper's order (what ``neb-slam run``
+computes). A lockstep replay (``lockstep:=true``) gives either engine every frame: the live one then tracks
+each frame while mapping and loop closure run beside it. It publishes what the separate
 ``tracker`` and ``mapper`` publish for other stacks: ``pose``, ``odometry``, ``path``, ``blocks`` and
 ``mesh`` (keyframes and map updates stay inside the process). With a ``bag`` parameter the process also
 runs ``bag_replay`` (its parameters: ``rate``, ``lockstep``, ``start``, ``count``, ``loop``) on the same
@@ -15,9 +16,16 @@ ground truth and ATE when ``ground_truth_topic`` is set, timings, metrics, plots
 publishes the final mesh (``save_mesh`` also publishes the mesh it writes). With
 ``map_file`` it continues that map checkpoint (the first frame is tracked against it).
 
+Checkpoints (the deterministic engine, ``live:=false``): every ``checkpoint_every``
+keyframes and at shutdown the node writes ``checkpoint.pt`` into ``output_dir``
+(:mod:`neb_slam_core.checkpoint`: the whole engine, the frames so far). Started again with the same
+``output_dir``, it resumes from it: frames stamped at or before the last processed one get their stored
+pose again (a replay that starts over from the beginning runs through them in lockstep) and are not
+processed twice; a later frame is tracked from where the engine was.
+
 Example::
 
-    ros2 run neb_slam_ros slam --ros-args -p config:=tum -p bag:=bags/fr1_xyz -p lockstep:=true \\
+    ros2 run neb_slam_ros slam --ros-args -p config:=tum -p bag:=bags/fr1_xyz -p lockstep:=true -p live:=false \\
         -p reliable_inputs:=true -p ground_truth_topic:=ground_truth/pose -p output_dir:=runs/fr1_ros
 """
 
@@ -32,6 +40,7 @@ from pathlib import Path
 
 from rclpy.node import Node
 
+from neb_slam_core.checkpoint import CHECKPOINT_FILE, load_checkpoint, save_checkpoint
 from neb_slam_core.eval.run_report import RunOutputOptions, write_run
 from neb_slam_core.io.run_dir import RunLog
 from neb_slam_core.live import LiveSlam
@@ -65,11 +74,12 @@ class SlamOptions:
     map_file: str = ""
     live: bool = True
     lockstep: bool = False
+    checkpoint_every: int = 20
 
     PARAMETER_DOCS = {
         "live": "tracking never waits: mapping and loop closure run beside it and the newest frame "
         "is tracked whenever the engine is free (false: every frame in the paper's order, as "
-        "neb-slam run; lockstep with bag implies false)",
+        "neb-slam run)",
         "lockstep": "with bag: the in-process replay publishes the next frame after this one's pose (bag_replay's "
         "parameter; the engine then processes every frame in order, live or not)",
         "map_file": "a map checkpoint (map.pt) to continue; empty: start from an empty map",
@@ -79,12 +89,15 @@ class SlamOptions:
         "every frame)",
         "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
         "bag": "also replay this bag in the process (bag_replay's parameters apply); the process ends with it",
+        "checkpoint_every": "write output_dir/checkpoint.pt every this many keyframes and at shutdown, and resume "
+        "from it when started again (0: never; the deterministic engine only: live false)",
     }
 
     def check(self) -> None:
         require(self.mesh_period_s >= 0, "mesh_period_s", ">= 0", self.mesh_period_s)
         require(self.path_period_s >= 0, "path_period_s", ">= 0", self.path_period_s)
         require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
+        require(self.checkpoint_every >= 0, "checkpoint_every", ">= 0 (0: never)", self.checkpoint_every)
 
 
 class SlamNode(NebNode):
@@ -96,7 +109,7 @@ class SlamNode(NebNode):
         self.frame_opt = declare_options(self, FrameOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/slam-%Y%m%d-%H%M%S"))
         self._map = map_parameter(self.cfg, self.opt.map_file)  # checked at start, used at the first frame
-        self.live = self.opt.live and not (self.opt.bag and self.opt.lockstep)
+        self.live = self.opt.live
         self.slam: Slam | LiveSlam | None = None  # made at the first frame (its pose may come from a topic)
         # the live engine's mapping process is started now: importing the engine takes seconds
         self._mapping = ProcessMapping() if self.live and self.cfg.live.mapping_process else None
@@ -130,8 +143,12 @@ class SlamNode(NebNode):
             topics=declare_options(self, MapTopicOptions),
             truncation_m=self.cfg.render.truncation_m,
         )
+        self._frames_in_before = self._frames_replayed = 0  # frames before the checkpoint resumed from
+        self._checkpoint = self.out / CHECKPOINT_FILE if self.opt.checkpoint_every and not self.live else None
+        self._resumed = self._resume() if self._checkpoint is not None and self._checkpoint.is_file() else ""
         self.start_worker()
         start = f", continuing {self.opt.map_file} ({len(self._map)} blocks)" if self._map is not None else ""
+        start += self._resumed
         self.get_logger().info(
             f"neb_slam slam started (config {self.get_parameter('config').value}, output {self.out}{start})"
         )
@@ -164,7 +181,45 @@ class SlamNode(NebNode):
                 f"frame {frame.stamp_ns} failed in the engine ({type(exc).__name__}: {exc}); skipped"
             )
 
+    def _resume(self) -> str:
+        """Take the engine and the frames so far from ``output_dir``'s checkpoint; says what it resumed."""
+        ckpt = load_checkpoint(self._checkpoint)
+        self.slam, self.run_log = ckpt.slam, ckpt.run_log
+        self._map = None
+        r = ckpt.resume
+        self._intrinsics, self._t_first = r["intrinsics"], time.perf_counter() - ckpt.wall_s
+        self.poses.align(r["T_map_world"])
+        self.map_outputs.align(r["T_map_world"])
+        self._loops_applied = sum(1 for e in self.slam.loops if e.applied)
+        self._frames_in_before = r["frames_in"]
+        return f", resuming {self._checkpoint} after {self.slam.n_frames} frames"
+
+    def _save_checkpoint(self) -> None:
+        with self.cond:  # frames that arrived after this one are the next start's to count
+            arrived = self.input.n_accepted - self.input.queued
+        frames_in = self._frames_in_before + arrived - self._frames_replayed
+        resume = {"intrinsics": self._intrinsics, "T_map_world": self.poses.T_map_world, "frames_in": frames_in}
+        self.out.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(self._checkpoint, self.slam, self.run_log, resume, time.perf_counter() - self._t_first)
+
+    def _replay_done(self, frame: RgbdFrame) -> bool:
+        """A frame the engine processed before the checkpoint it resumed from: its stored pose goes out
+        again (lockstep replay waits for it), nothing is processed."""
+        if not self._resumed or self.slam is None or self.slam.n_frames == 0:
+            return False
+        done = self.run_log.frames
+        if frame.stamp_ns > done[-1].stamp_ns:
+            return False
+        k = next((j for j, f in enumerate(done) if f.stamp_ns >= frame.stamp_ns), None)
+        self._frames_replayed += 1
+        if k is not None and done[k].stamp_ns == frame.stamp_ns and done[k].result is not None:
+            r = dataclasses.replace(done[k].result, T_world_cam=self.slam.pose_of(k))
+            self.poses.publish_frame(r, self.input.frame_id)
+        return True
+
     def _process(self, frame: RgbdFrame) -> None:
+        if self._replay_done(frame):
+            return
         gt = None
         if self.input_opt.ground_truth_topic:
             gt = self.input.wait_for_ground_truth(
@@ -207,6 +262,8 @@ class SlamNode(NebNode):
             )
         for hook in self.frame_hooks:
             hook(r)
+        if self._checkpoint is not None and r.is_keyframe and len(self.slam.keyframes) % self.opt.checkpoint_every == 0:
+            self._save_checkpoint()
 
     def _health_values(self) -> dict[str, object]:
         slam = self.slam
@@ -236,6 +293,8 @@ class SlamNode(NebNode):
             self.input.drop_queued()  # arrived after the last frame the engine took
         if self.live:
             self.slam.close()
+        if self._checkpoint is not None:  # the next start with this output_dir goes on from here
+            self._save_checkpoint()
         run_dir = self.map_outputs.run_dir()
         run_dir.write_config(self.cfg)
         run_dir.write_intrinsics(self._intrinsics)
@@ -245,7 +304,7 @@ class SlamNode(NebNode):
         summary = write_run(run_dir, self.slam, self.run_log, options, "complete", wall_s)
         # every frame that reached the node and got no pose (superseded, queued at the end, or failed in the
         # engine) counts as dropped
-        frames_in = self.input.n_accepted
+        frames_in = self._frames_in_before + self.input.n_accepted - self._frames_replayed
         summary.metrics["frames_in"] = frames_in
         summary.metrics["frames_dropped"] = frames_in - self.slam.n_frames
         if self.live:

@@ -51,3 +51,35 @@ def sigterm_interrupts() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+class PendingInterrupt:
+    """What :func:`deferred_interrupts` holds: the interruption that arrived (None: none yet)."""
+
+    def __init__(self) -> None:
+        self.exc: KeyboardInterrupt | None = None
+
+
+@contextmanager
+def deferred_interrupts() -> Iterator[PendingInterrupt]:
+    """While the block runs, the first Ctrl-C or SIGTERM is only recorded (``pending.exc``: a
+    :class:`KeyboardInterrupt` or :class:`Terminated`), so that the caller stops where its state is whole
+    (after the current frame); a second one raises at once. The previous handlers are restored afterwards.
+    Outside the main thread it records nothing and Ctrl-C raises as usual."""
+    pending = PendingInterrupt()
+    if threading.current_thread() is not threading.main_thread():
+        yield pending
+        return
+
+    def on_signal(signum: int, frame) -> None:
+        exc = Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+        if pending.exc is not None:
+            raise exc
+        pending.exc = exc
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield pending
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

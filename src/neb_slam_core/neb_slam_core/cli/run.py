@@ -39,17 +39,23 @@ bag message that does not decode) is skipped, the run goes on, and one warning a
 skipped files; metrics.json counts them in ``frames_unreadable``. Any other bad frame (an image of the
 wrong size, say) stops the run with an error naming the file.
 
-Ctrl-C stops processing after the current frame; everything computed so far (trajectory of the
-processed frames, map, mesh, metrics, plots) is then written and the command exits with code 130.
-SIGTERM does the same and exits with code 143. A second Ctrl-C or SIGTERM aborts the writing. A crash
-inside the engine also writes what exists before the error is reported. The last line printed is the
-run directory.
+Ctrl-C stops processing after the current frame; a checkpoint and everything computed so far
+(trajectory of the processed frames, map, mesh, metrics, plots) are then written and the command exits
+with code 130. SIGTERM does the same and exits with code 143. A second Ctrl-C or SIGTERM aborts the
+writing. A crash inside the engine also writes what exists before the error is reported. The last line
+printed is the run directory.
+
+Checkpoints (not with --live): every --checkpoint-every keyframes (default 20) and at Ctrl-C or SIGTERM
+the run directory's checkpoint.pt holds the engine, the frames so far, the input and the options
+(``neb_slam_core.checkpoint``); --resume RUN_DIR goes on from it after a crash, a kill or a stop, and
+the frames after it get the poses the uninterrupted run would have given. A completed run removes it.
 
 Examples:
     neb-slam run ../shared/data/tum_fr1_xyz_300 --frames 100
     neb-slam run data/synth_small --config ci --out runs/smoke --no-mesh
     neb-slam run bags/fr1_xyz --config tum --set tracking.iterations=20 mapping.every=4 --stride 2
     neb-slam run bags/fr1_xyz --config tum --start 150 --map runs/fr1_first_half/map.pt
+    neb-slam run --resume runs/fr1_xyz-20260101-120000
 """
 
 from __future__ import annotations
@@ -73,10 +79,32 @@ log = logging.getLogger(__name__)
 PRESET_OF_FORMAT = {"tum": "tum", "scannet": "scannet", "replica": "replica"}
 SYNTH_SCENE_FILE = "scene.json"  # written by `neb-slam synth`
 SYNTH_MESH_FILE = "mesh.ply"
+#: keyframes between two checkpoints by default
+DEFAULT_CHECKPOINT_EVERY = 20
+#: options that --resume takes from the checkpoint, with their defaults (given otherwise: an error)
+RESUME_FIXED = {
+    "source": None,
+    "config": None,
+    "overrides": [],
+    "frames": None,
+    "stride": 1,
+    "start": 0,
+    "seed": None,
+    "device": None,
+    "format": None,
+    "map": None,
+    "live": False,
+    "out": None,
+    "no_mesh": False,
+    "mesh_voxel": None,
+    "gt_mesh": None,
+    "recon_points": 200_000,
+    "depth_views": 1000,
+}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", type=Path, help="dataset folder or bag")
+    p.add_argument("source", type=Path, nargs="?", help="dataset folder or bag (not with --resume)")
     p.add_argument("--config", metavar="NAME|PATH", help="config preset or YAML file (default: from the dataset)")
     p.add_argument(
         "--set",
@@ -99,6 +127,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=Path,
         metavar="MAP_PT",
         help="continue this map checkpoint (a run's map.pt) instead of starting from an empty map",
+    )
+    p.add_argument(
+        "--resume",
+        type=Path,
+        metavar="RUN_DIR",
+        help="continue the run in RUN_DIR from its checkpoint.pt (after a crash, a kill, Ctrl-C or SIGTERM) "
+        "with the input and options it was started with",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=DEFAULT_CHECKPOINT_EVERY,
+        metavar="K",
+        help=f"write the run directory's checkpoint.pt every K keyframes and when stopped (0: never; "
+        f"default {DEFAULT_CHECKPOINT_EVERY}; not with --live)",
     )
     p.add_argument(
         "--live",
@@ -205,10 +248,13 @@ def run(args: argparse.Namespace) -> int:
     from ..datasets import open_dataset
     from ..datasets.base import FrameSkipper
     from ..errors import ConfigError, DatasetError
-    from ..eval.run_report import RunOutputOptions, write_run
+    from ..eval.run_report import RunOutputOptions
     from ..io.run_dir import RunDirectory, RunLog
-    from .interrupt import describe, exit_status
 
+    if args.resume is not None:
+        return _resume(args)
+    if args.source is None:
+        raise ConfigError("give the dataset folder or bag to run on (or --resume RUN_DIR)")
     # --- check everything before the (long) run starts
     dataset = open_dataset(args.source, args.format)
     cfg = resolve_config(args, dataset)
@@ -219,6 +265,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--rate must be > 0, got {args.rate}")
     if args.recon_points < 1 or args.depth_views < 0:
         raise ConfigError("--recon-points must be >= 1 and --depth-views >= 0")
+    if args.checkpoint_every < 0:
+        raise ConfigError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
+    if args.live and args.checkpoint_every not in (0, DEFAULT_CHECKPOINT_EVERY):
+        raise ConfigError("--checkpoint-every: a live run (--live) is not checkpointed")
     gt_mesh = args.gt_mesh
     if gt_mesh is not None and not gt_mesh.is_file():
         raise DatasetError(gt_mesh, "ground-truth mesh not found")
@@ -267,15 +317,87 @@ def run(args: argparse.Namespace) -> int:
         from ..live import LiveSlam
 
         slam = LiveSlam(cfg, T_world_first, block_map)
+        checkpoints = None
     else:
         slam = Slam(cfg, T_world_first, block_map)
-    run_log = RunLog()
-    t_start = time.perf_counter()
+        resume = {"source": str(Path(args.source).resolve()), "format": dataset.name, "options": options}
+        checkpoints = _Checkpoints(run_dir, args.checkpoint_every, resume)
+    return _execute(slam, skipper, indices, first, RunLog(), run_dir, options, args, checkpoints)
+
+
+def _resume(args: argparse.Namespace) -> int:
+    """``--resume RUN_DIR``: the engine, run log and remaining input from RUN_DIR's checkpoint."""
+    from ..checkpoint import CHECKPOINT_FILE, load_checkpoint
+    from ..datasets import open_dataset
+    from ..datasets.base import FrameSkipper
+    from ..engine_process import prepare_engine_process
+    from ..errors import ConfigError
+    from ..io.run_dir import RunDirectory
+
+    given = [name for name, default in RESUME_FIXED.items() if getattr(args, name) != default]
+    if given:
+        flags = ", ".join("source" if n == "source" else "--" + n.replace("_", "-") for n in given)
+        raise ConfigError(f"--resume continues the run as it was started: drop {flags}")
+    ckpt = load_checkpoint(Path(args.resume) / CHECKPOINT_FILE)
+    r = ckpt.resume
+    dataset = open_dataset(r["source"], r["format"])
+    skipper = FrameSkipper(dataset)
+    skipper.unreadable = list(r.get("unreadable", []))
+    remaining = r["remaining"]
+    slam, run_log = ckpt.slam, ckpt.run_log
+    prepare_engine_process(slam.cfg.grid_backend)
+    print(
+        f"{dataset!r}: resuming {args.resume} after {slam.n_frames} frames, {len(remaining)} to go",
+        file=sys.stderr,
+    )
+    checkpoints = _Checkpoints(RunDirectory(args.resume), args.checkpoint_every, r)
+    return _execute(
+        slam, skipper, remaining, None, run_log, RunDirectory(args.resume), r["options"], args, checkpoints, ckpt.wall_s
+    )
+
+
+class _Checkpoints:
+    """Writes the run directory's checkpoint every ``every`` keyframes (0: never) and at a stop; ``resume``
+    is what ``--resume`` needs besides the engine (input, options), completed with the frames left."""
+
+    def __init__(self, run_dir, every: int, resume: dict):
+        from ..checkpoint import CHECKPOINT_FILE
+
+        self.path = run_dir.file(CHECKPOINT_FILE)
+        self.every = every
+        self.resume = {k: v for k, v in resume.items() if k not in ("remaining", "unreadable")}
+
+    def after_frame(self, slam, run_log, skipper, remaining: range, wall_s: float, keyframe: bool, stop: bool) -> None:
+        """After a whole frame (``keyframe``: it made one): write when it made the every-th keyframe, or
+        at a ``stop``."""
+        if self.every <= 0:
+            return
+        if (keyframe and len(slam.keyframes) % self.every == 0) or stop:
+            from ..checkpoint import save_checkpoint
+
+            state = {**self.resume, "remaining": remaining, "unreadable": list(skipper.unreadable)}
+            save_checkpoint(self.path, slam, run_log, state, wall_s)
+
+    def discard(self) -> None:
+        """The run completed: its checkpoint has nothing left to resume."""
+        self.path.unlink(missing_ok=True)
+
+
+def _execute(
+    slam, skipper, indices: range, first, run_log, run_dir, options, args, checkpoints, wall_before: float = 0.0
+) -> int:
+    """Process ``indices`` (the first one already read as ``first``, or None), then write the run
+    directory, also after an interruption or a crash; the command's exit status."""
+    from ..eval.run_report import write_run
+    from .interrupt import describe, exit_status
+
+    t_start = time.perf_counter() - wall_before
     try:
         if args.live:
             interrupt, live_metrics = _process_live(slam, skipper, indices, first, run_log, args.rate)
         else:
-            interrupt, live_metrics = _process(slam, skipper, indices, first, run_log), {}
+            interrupt = _process(slam, skipper, indices, first, run_log, checkpoints, t_start)
+            live_metrics = {}
     except Exception as exc:
         wall_s = time.perf_counter() - t_start
         log.error(
@@ -301,8 +423,8 @@ def run(args: argparse.Namespace) -> int:
     status = "complete" if interrupt is None else "interrupted"
     if interrupt is not None:
         print(
-            f"interrupted by {describe(interrupt)} after {slam.n_frames} of {len(indices)} frames: writing "
-            f"what was computed (Ctrl-C or SIGTERM again to abort)",
+            f"interrupted by {describe(interrupt)} after {slam.n_frames} frames: writing what was computed "
+            f"(Ctrl-C or SIGTERM again to abort)",
             file=sys.stderr,
         )
     try:
@@ -311,6 +433,8 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt as again:
         print(f"writing aborted by {describe(again)}: {run_dir.path} is incomplete", file=sys.stderr)
         return exit_status(again)
+    if interrupt is None and checkpoints is not None:
+        checkpoints.discard()
     _print_summary(summary)
     print(run_dir.path)
     return 0 if interrupt is None else exit_status(interrupt)
@@ -329,31 +453,44 @@ def _first_readable(skipper: FrameSkipper, indices: range) -> tuple[RgbdFrame, r
     raise DatasetError(skipper.dataset.root, f"none of the {len(indices)} selected frames can be read")
 
 
-def _process(slam, skipper: FrameSkipper, indices: range, first, run_log) -> KeyboardInterrupt | None:
+def _process(slam, skipper: FrameSkipper, indices: range, first, run_log, checkpoints, t_start: float):
     """The per-frame loop with its progress bar; returns the interruption (Ctrl-C or SIGTERM, see
     :mod:`.interrupt`) that stopped it after the current frame, or None when every frame was processed.
-    Frames ``skipper`` cannot read are skipped (it keeps them for the summary warning)."""
+    ``first`` is ``indices[0]``'s frame, already read (None: read it). Frames ``skipper`` cannot read are
+    skipped (it keeps them for the summary warning). ``checkpoints`` (or None) is told of every frame."""
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
+    from .interrupt import deferred_interrupts
+
     t0 = time.perf_counter()
-    with logging_redirect_tqdm(), tqdm(total=len(indices), desc="slam", unit="frame", dynamic_ncols=True) as bar:
+    with (
+        logging_redirect_tqdm(),
+        tqdm(total=len(indices), desc="slam", unit="frame", dynamic_ncols=True) as bar,
+        deferred_interrupts() as pending,
+    ):
         try:
             for k, i in enumerate(indices):
-                frame = first if k == 0 else skipper.read(i)
-                if frame is None:
-                    bar.update(1)
-                    continue
-                run_log.begin(frame)
-                result = slam.process(frame)
-                run_log.end(result)
+                frame = first if k == 0 and first is not None else skipper.read(i)
+                keyframe = False
+                if frame is not None:
+                    run_log.begin(frame)
+                    result = slam.process(frame)
+                    run_log.end(result)
+                    keyframe = result.is_keyframe
+                    bar.set_postfix(
+                        fps=f"{bar.n / max(time.perf_counter() - t0, 1e-9):.2f}",
+                        blocks=result.n_blocks,
+                        kf=len(slam.keyframes),
+                        refresh=False,
+                    )
                 bar.update(1)
-                bar.set_postfix(
-                    fps=f"{bar.n / max(time.perf_counter() - t0, 1e-9):.2f}",
-                    blocks=result.n_blocks,
-                    kf=len(slam.keyframes),
-                    refresh=False,
-                )
+                stop = pending.exc is not None
+                if checkpoints is not None:
+                    wall_s = time.perf_counter() - t_start
+                    checkpoints.after_frame(slam, run_log, skipper, indices[k + 1 :], wall_s, keyframe, stop)
+                if stop:
+                    return pending.exc
         except KeyboardInterrupt as exc:
             return exc
     return None

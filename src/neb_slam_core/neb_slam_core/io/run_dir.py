@@ -20,6 +20,9 @@ and readers of each file.
         trajectory.png, ate_over_time.png    with ground truth (as ``neb-slam eval`` draws them; loops
                            marked on the trajectory)
         blocks.png         the block allocation, top view (:func:`~neb_slam_core.eval.plots.plot_block_allocation`)
+        checkpoint.pt      while a run goes on, and after it was stopped, killed or crashed: the engine's
+                           state to resume from (:mod:`~neb_slam_core.checkpoint`); a completed
+                           ``neb-slam run`` removes it
 
 :class:`RunDirectory` has one writer per file; each writes under a temporary name and renames, so no file
 is ever left half-written. Computing what goes into the report files (metrics, plots, the mesh and its

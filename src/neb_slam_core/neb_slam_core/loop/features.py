@@ -93,6 +93,12 @@ class OrbExtractor:
             fastThreshold=params.fast_threshold,
         )
 
+    def __getstate__(self) -> dict:  # OpenCV's detector does not pickle: it is made again from the params
+        return {"params": self.params}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["params"])
+
     def upsample_factor(self, width_px: int) -> int:
         """The integer factor an image ``width_px`` wide is upsampled by before detection (1 = none)."""
         return max(1, math.ceil(self.params.min_width_px / max(1, width_px)))

@@ -79,32 +79,36 @@ def run_cli(argv: list[str]) -> tuple[int, str]:
     return code, out.getvalue()
 
 
+def _ci_args(out: Path, small_scene: Path, *more: str) -> list[str]:
+    """``run`` on the small scene with config ci into ``out``, then ``more``."""
+    return ["run", str(small_scene), "--config", "ci", "--out", str(out), *more]
+
+
+def _shared_args(out: Path, small_scene: Path) -> list[str]:
+    """The shared run's arguments, into ``out``."""
+    return _ci_args(
+        out,
+        small_scene,
+        "--start",
+        "2",
+        "--stride",
+        "2",
+        "--frames",
+        str(len(SHARED_INDICES)),
+        "--seed",
+        "3",
+        "--recon-points",
+        "20000",
+        "--depth-views",
+        "10",
+    )
+
+
 @pytest.fixture(scope="module")
 def shared_run(small_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "small"
     expected_cfg = load_config("ci", ["seed=3"])  # read now: the preset file may change while tests run
-    code, stdout = run_cli(
-        [
-            "run",
-            str(small_scene),
-            "--config",
-            "ci",
-            "--out",
-            str(out),
-            "--start",
-            "2",
-            "--stride",
-            "2",
-            "--frames",
-            str(len(SHARED_INDICES)),
-            "--seed",
-            "3",
-            "--recon-points",
-            "20000",
-            "--depth-views",
-            "10",
-        ]
-    )
+    code, stdout = run_cli(_shared_args(out, small_scene))
     return code, stdout, out, expected_cfg
 
 
@@ -289,21 +293,7 @@ def test_map_continues_a_run_s_checkpoint(shared_run, small_scene, tmp_path, cap
 def test_ctrl_c_writes_the_frames_processed_so_far(small_scene, tmp_path, monkeypatch):
     fail_at(monkeypatch, 3, KeyboardInterrupt())
     out = tmp_path / "run"
-    code, stdout = run_cli(
-        [
-            "run",
-            str(small_scene),
-            "--config",
-            "ci",
-            "--out",
-            str(out),
-            "--frames",
-            "10",
-            *TINY,
-            "--set",
-            "mapping.first_iterations=10",
-        ]
-    )
+    code, stdout = run_cli(_ci_args(out, small_scene, "--frames", "10", *TINY, "--set", "mapping.first_iterations=10"))
     assert code == 130
     est = read_tum_trajectory(out / "trajectory.txt")
     ds = open_dataset(small_scene)
@@ -382,30 +372,6 @@ def test_engine_crash_writes_what_exists_then_reraises(small_scene, tmp_path, mo
     assert len(read_tum_trajectory(out / "trajectory.txt")) == 2
     assert json.loads((out / "metrics.json").read_text())["status"] == "crashed"
     assert (out / "map.pt").is_file() and not (out / "mesh.ply").exists()
-
-
-def _shared_args(out: Path, small_scene: Path) -> list[str]:
-    """The shared run's arguments, into ``out``."""
-    return [
-        "run",
-        str(small_scene),
-        "--config",
-        "ci",
-        "--out",
-        str(out),
-        "--start",
-        "2",
-        "--stride",
-        "2",
-        "--frames",
-        str(len(SHARED_INDICES)),
-        "--seed",
-        "3",
-        "--recon-points",
-        "20000",
-        "--depth-views",
-        "10",
-    ]
 
 
 def _trajectory_text(run_dir: Path) -> list[str]:

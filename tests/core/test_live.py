@@ -139,7 +139,7 @@ def test_live_slam_tracks_and_integrates_every_keyframe(frames, process):
     assert slam.stats.background_chunks == 0  # the first map was fitted in full: nothing left to refine
     assert np.allclose(np.stack(slam.frontend.keyframe_poses), slam.keyframes.poses())
     # the mesh culling's points are the mapper's keyframes' kept pixels
-    n_points = sum(len(kf.observed_points()) for kf in slam.keyframes.keyframes)
+    n_points = sum(len(slam.keyframes.observed_points(kf)) for kf in slam.keyframes.keyframes)
     assert slam.observed_points().shape == (n_points, 3) and n_points > 0
     # the map updates carried every change: the tracker's map is the mapper's
     tracked, final = slam.frontend.block_map, slam.block_map
@@ -310,3 +310,30 @@ def test_a_mapping_side_without_loop_thread_takes_outside_corrections(frames):
         side.close(120.0)
     assert [k for k, _ in messages if k not in ("update", "progress")] == []
     assert side.progress.checked == 0 and side.progress.integrated == 4
+
+
+def test_a_failed_loop_check_skips_its_keyframe_and_loop_closure_goes_on(frames, monkeypatch):
+    """A loop check that raises (a numerical failure on one keyframe) is logged and skipped: the mapping
+    side reports no error, and the next keyframes are checked again."""
+    from neb_slam_core.loop.closer import LoopCloser
+
+    original, calls = LoopCloser.close, []
+
+    def close(self, keyframe_id, poses, frame):
+        calls.append(keyframe_id)
+        if keyframe_id == 1:
+            raise ValueError("not a rotation")
+        return original(self, keyframe_id, poses, frame)
+
+    monkeypatch.setattr(LoopCloser, "close", close)
+    cfg = load_config("ci", overrides=["live.mapping_process=false", "live.first_iterations=20"])
+    slam = LiveSlam(cfg, frames[0].T_world_cam)
+    try:
+        for f in frames:
+            slam.process(f)
+            assert slam.wait_integrated(timeout_s=120.0)
+    finally:
+        slam.close()
+    assert slam.errors == []
+    n = len(slam.frontend.keyframe_poses)
+    assert n > 2 and calls == list(range(n))

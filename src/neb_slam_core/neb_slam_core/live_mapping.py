@@ -30,11 +30,15 @@ Three rules keep the camera from waiting (the tracker's side is in :mod:`neb_sla
   all of them, so the mapping lag stays bounded by one step's worth of keyframes;
 - a loop correction moves the keyframe poses at once; its two-stage re-optimisation runs in chunks in the
   same way, and a correction that arrives while one is being worked off replaces what is left of it.
+
+The loop closer checks the newest keyframe when it is free: keyframes that queued up meanwhile are added
+to its database unchecked, so its queue stays bounded too.
 """
 
 from __future__ import annotations
 
 import io
+import logging
 import multiprocessing
 import signal
 import threading
@@ -57,6 +61,8 @@ from .slam import Backend
 from .types import RgbdFrame
 
 Emit = Callable[[str, object], None]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -346,15 +352,26 @@ class MappingSide:
                 self._cond.wait_for(lambda: self._stopping or self._to_loop)
                 if not self._to_loop:
                     return
-                h = self._to_loop.popleft()
+                *behind, h = self._to_loop
+                self._to_loop.clear()
                 refined = self._mapper_poses
+            # keyframes that queued up while the closer was busy go into its database (later loops and
+            # relocalisation find them); only the newest is checked, so the queue, and the frames it
+            # holds, stay bounded however fast keyframes come
+            for old in behind:
+                with self._database_lock:
+                    self.loop_closer.add_keyframe(old.keyframe_id, old.frame)
             kid = h.keyframe_id
             poses = h.keyframe_poses.copy()
             if refined is not None:  # the mapper's poses where it has them, the tracker's after
                 poses[: min(len(refined), len(poses))] = refined[: len(poses)]
-            with self._database_lock:
-                self.loop_closer.add_keyframe(kid, h.frame)
-            event, corrected = self.loop_closer.close(kid, poses, h.frame)
+            try:
+                with self._database_lock:
+                    self.loop_closer.add_keyframe(kid, h.frame)
+                event, corrected = self.loop_closer.close(kid, poses, h.frame)
+            except Exception as exc:  # one keyframe's failed check must not end loop closure for good
+                log.warning("loop check of keyframe %d failed (%s: %s); skipped", kid, type(exc).__name__, exc)
+                event, corrected = None, None
             with self._cond:
                 self.progress.checked = kid + 1
                 if event is not None and event.applied:

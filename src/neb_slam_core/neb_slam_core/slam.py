@@ -325,7 +325,9 @@ class Frontend:
         """Corrected poses ``(K, 4, 4)`` of the first K keyframes (from mapping or loop closure). Keyframes
         after them (made since the corrections were computed: another thread or process maps) move
         rigidly with keyframe K-1, keeping the relative poses tracking gave them."""
-        poses = np.asarray(poses, dtype=np.float64)
+        # poses that went through optimisers and pipes come back rigid to rounding; keep them exactly so,
+        # since every frame pose is composed from them
+        poses = orthonormalize(np.asarray(poses, dtype=np.float64))
         if len(poses) == 0:
             return
         k_last = len(poses) - 1

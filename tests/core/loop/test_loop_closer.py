@@ -126,3 +126,27 @@ def test_kept_depth_maps_read_back_in_tenths_of_millimetres(vocabulary):
     expected = units[::2, ::2] * np.float32(DEPTH_UNIT_M)
     expected[0, 0] = expected[1, 1] = expected[2, 2] = 0.0
     np.testing.assert_allclose(view.depth_m, expected, rtol=1e-6)
+
+
+def test_a_correction_that_is_not_rigid_is_not_applied(vocabulary, loop_views, monkeypatch):
+    """The pose graph's output is checked before it goes out: poses that are not rigid motions (a
+    numerical failure) leave the loop detected but not applied."""
+    import neb_slam_core.loop.closer as closer_module
+
+    real = closer_module.propagate_correction
+
+    def broken(*args, **kwargs):
+        poses = real(*args, **kwargs)
+        poses[-1, :3, :3] *= 1e3
+        return poses
+
+    monkeypatch.setattr(closer_module, "propagate_correction", broken)
+    views, intr = loop_views
+    closer = LoopCloser(LoopConfig(temporal_window=2, neighbours=1), vocabulary, seed=0)
+    gt = np.stack([views[f][1] for f in LOOP_FRAMES])
+    drifted = np.array([DRIFT @ T if f >= 270 else T for f, T in zip(LOOP_FRAMES, gt)])
+    for i, f in enumerate(LOOP_FRAMES):
+        closer.add_keyframe(i, frame_of(views, intr, f))
+    event, corrected = closer.close(len(LOOP_FRAMES) - 1, drifted, frame_of(views, intr, LOOP_FRAMES[-1]))
+    assert event is not None and not event.applied and corrected is None
+    assert event.reason == "the corrected poses are not rigid motions"

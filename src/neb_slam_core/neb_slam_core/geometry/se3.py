@@ -114,10 +114,26 @@ def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
 
 
 def orthonormalize(T: np.ndarray) -> np.ndarray:
-    """Project the rotation part of a nearly rigid ``T`` onto SO(3) (SVD), keep the translation."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    return make_pose(R, T[:3, 3])
+    """Project the rotation part of nearly rigid ``T`` (``(..., 4, 4)``) onto SO(3) (SVD), keep the
+    translation."""
+    T = np.asarray(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[..., :3, :3])
+    flip = np.linalg.det(U @ Vt) < 0
+    U[flip, :, -1] *= -1
+    out = np.zeros(T.shape)
+    out[..., :3, :3] = U @ Vt
+    out[..., :3, 3] = T[..., :3, 3]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def rigidity_error(T: np.ndarray) -> float:
+    """How far ``T`` (``(..., 4, 4)``) is from rigid motions: the largest entry of ``R R^T - I`` or of
+    the last row's difference from ``(0, 0, 0, 1)``; infinite when an entry is not finite."""
+    T = np.asarray(T, dtype=np.float64)
+    if not np.all(np.isfinite(T)):
+        return float("inf")
+    R = T[..., :3, :3]
+    gram = np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max(initial=0.0)
+    row = np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(initial=0.0)
+    return float(max(gram, row, 0.0 if np.all(np.linalg.det(R) > 0) else float("inf")))

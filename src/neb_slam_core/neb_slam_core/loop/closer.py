@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from ..config import LoopConfig
-from ..geometry.se3 import invert
+from ..geometry.se3 import invert, rigidity_error
 from ..types import Intrinsics, LoopEvent, RgbdFrame
 from .correction import DepthView, correction_size, fit_loop_pose, propagate_correction, sample_pixels, strided_view
 from .detector import LoopDetector
@@ -36,6 +36,8 @@ from .vocabulary import Vocabulary
 
 #: the unit of the kept depth maps (metres): TUM's, so its depth is kept exactly
 DEPTH_UNIT_M = 1.0 / 5000.0
+#: a correction whose poses are further than this from rigid motions (numerical failure) is not applied
+MAX_RIGIDITY_ERROR = 1e-6
 
 
 class LoopCloser:
@@ -112,6 +114,8 @@ class LoopCloser:
                 f"{cfg.min_correction_deg:g} deg: nothing to correct",
             ), None
         corrected = propagate_correction(poses, min(ids), keyframe_id, fit.T_world_cam, self.registrations)
+        if rigidity_error(corrected) > MAX_RIGIDITY_ERROR:
+            return event(False, "the corrected poses are not rigid motions"), None
         return event(True), corrected
 
     def relocalise(self, frame: RgbdFrame, poses: np.ndarray, max_poses: int = 2) -> list[np.ndarray]:

@@ -87,13 +87,17 @@ def test_gauss_newton_recovers_a_perturbed_pose(fitted_small_map, start, coarse_
 
 
 def test_adam_reduces_the_error_of_a_perturbed_pose(fitted_small_map):
-    """The paper's optimiser, at its learning rate for fast motion, halves a 2 cm error in 20 steps."""
+    """The paper's optimiser, at its learning rate for fast motion, brings a 2 cm error under a quarter of
+    itself in 30 steps on each of three held-out frames (at about 1 cm per step Adam hovers around the
+    minimum, so one frame's final error depends on the draw: three frames and a step count past the hovering
+    make the check about the optimiser, not one draw)."""
     fm = fitted_small_map
-    frame = fm.held_out[1]
-    T0 = perturbed(frame.T_world_cam, np.array([0.012, -0.012, 0.01]), np.array([0.0, 0.0, 0.0]))
-    cfg = TrackingConfig(n_rays=1024, iterations=20, lr=1e-2, method="adam")
-    result = Tracker(cfg, fm.render, seed=0).track(fm.block_map, frame, T0)
-    assert pose_error(result.T_world_cam, frame.T_world_cam)[0] < 0.5 * pose_error(T0, frame.T_world_cam)[0]
+    cfg = TrackingConfig(n_rays=1024, iterations=30, lr=1e-2, method="adam")
+    for frame in fm.held_out[:3]:
+        T0 = perturbed(frame.T_world_cam, np.array([0.012, -0.012, 0.01]), np.array([0.0, 0.0, 0.0]))
+        result = Tracker(cfg, fm.render, seed=0).track(fm.block_map, frame, T0)
+        before = pose_error(T0, frame.T_world_cam)[0]
+        assert pose_error(result.T_world_cam, frame.T_world_cam)[0] < 0.25 * before
 
 
 def test_tracking_with_no_mapped_block_in_view_reports_no_valid_rays(fitted_small_map):

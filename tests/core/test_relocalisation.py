@@ -1,10 +1,15 @@
 """Relocalisation (``tracking.relocalise``): after a tracking failure the engine is lost, adds nothing
 to the map, predicts the last tracked pose, and recovers through the loop closer's keyframe database
-when the camera sees a mapped place again, however far from where it was lost."""
+when the camera sees a mapped place again, however far from where it was lost; on real frames it
+recovers after two seconds without a view (frames left out, or black)."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +18,8 @@ from neb_slam_core.config_io import load_config
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.geometry.se3 import make_pose
 from neb_slam_core.slam import Frontend, Slam, _FramePose, new_block_map
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_a_lost_frontend_extrapolates_no_further_in_either_motion_model():
@@ -98,3 +105,34 @@ def test_a_kidnapped_camera_relocalises_within_ten_frames(kidnapped):
     # centimetres while it was built (the whole run's ATE bound is 2 cm after alignment)
     errors = [np.linalg.norm(slam.pose_of(r.frame_index)[:3, 3] - f.T_world_cam[:3, 3]) for r, f in zip(tail, after)]
     assert max(errors[recovered:]) < 0.05, errors
+
+
+@pytest.fixture(scope="module")
+def tum_interrupted(tum_dir, tmp_path_factory) -> dict:
+    """``benchmarks/relocalisation.py`` on the first 241 TUM fr1_xyz frames, every other one (15 Hz),
+    config ``live`` in lockstep: uninterrupted, with frames 121-180 (two seconds) left out, and with them
+    black (30 frames fed of each)."""
+    out = tmp_path_factory.mktemp("relocalisation")
+    cmd = [sys.executable, str(REPO / "benchmarks" / "relocalisation.py"), "--source", str(tum_dir)]
+    cmd += ["--config", "live", "--frames", "241", "--stride", "2", "--gap", "121", "180"]
+    cmd += ["--no-progress", "--results-dir", str(out), "--json", str(out / "figures.json")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads((out / "figures.json").read_text())
+
+
+@pytest.mark.parametrize("kind", ["gap", "black"])
+def test_tum_frames_recover_after_two_seconds_without_view(tum_interrupted, kind):
+    """Within 10 frames of the view returning tracking passes again and stays so, nothing was mapped from
+    the failed frames, and the ATE over the frames after recovery is within 1.5x of the uninterrupted
+    run's over the same frames."""
+    fig = tum_interrupted
+    assert fig["uninterrupted"]["tracking_failures"] == 0
+    row = fig[kind]
+    assert row["failures_before_gap"] == 0
+    assert row["recovered_after"] is not None and row["recovered_after"] < 10, row
+    assert row["failures_after_recovery"] == 0, row
+    assert row["changes_while_lost"] == 0, row
+    # black frames fail (too few depth pixels); with the frames left out, only those before recovery can
+    assert row["tracking_failures"] == (30 if kind == "black" else 0) + row["recovered_after"], row
+    assert row["ratio"] <= 1.5, row

@@ -66,6 +66,16 @@ def _ends(value) -> str:
     )
 
 
+def _interruption(value) -> str:
+    """relocalisation's ``gap`` / ``black``: frames until recovery; ATE after it / uninterrupted (ratio)."""
+    if not isinstance(value, dict):
+        return fmt(value)
+    return (
+        f"{fmt(value.get('recovered_after'))}; {fmt(value.get('ate_cm_after'))} / "
+        f"{fmt(value.get('ate_cm_after_uninterrupted'))} ({fmt(value.get('ratio'))})"
+    )
+
+
 def _words(value) -> str:
     return " ".join(str(v) for v in value) if isinstance(value, (list, tuple)) else fmt(value)
 
@@ -222,6 +232,14 @@ COLUMNS: dict[str, list[Column]] = {
         C("ate_cm", "ATE cm"),
         C("tracking_failures", "tracking failures"),
         C("loops_applied", "loops applied"),
+    ],
+    "relocalisation": [
+        C("config", "config"),
+        C("frames", "frames"),
+        C("stride", "stride"),
+        C("gap", "frames left out: recovered after; ATE cm after / uninterrupted (ratio)", _interruption),
+        C("black", "frames black: the same", _interruption),
+        C("uninterrupted", "uninterrupted", lambda v: fmt(v.get("ate_cm")) if isinstance(v, dict) else fmt(v)),
     ],
     "encoding": [
         C("fast_fwd_ms", "fast fwd ms"),

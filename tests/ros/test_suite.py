@@ -282,6 +282,68 @@ def test_one_process_slam_killed_half_way_resumes_from_its_checkpoint(small_bag,
     assert metrics["n_frames"] == N_FRAMES and metrics["frames_dropped"] == 0 and metrics["n_tracking_failures"] == 0
 
 
+def test_the_mapper_killed_half_way_resumes_and_the_tracker_sends_it_the_keyframes_it_lost(
+    small_bag, offline, ros_env, tmp_path
+):
+    """The separate nodes on the small bag, the mapper checkpointing every keyframe. Once the tracker has
+    sent keyframe 1 (the mapper's checkpoint holds keyframe 0 only: integrating keyframe 1 takes it
+    longer than this test takes to react), SIGKILL, and the same mapper command again. It resumes from
+    the checkpoint and gets keyframe 1 again (the keyframe topics keep their last messages for a late
+    subscriber; older ones the tracker sends again), the tracker (not restarted) takes the resumed
+    mapper's map, and the run directory has a pose for every frame at the uninterrupted run's accuracy."""
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.signals import SignalHandlerOptions
+    from std_msgs.msg import String
+
+    from neb_slam_core.io.trajectory import read_tum_trajectory
+    from neb_slam_ros import qos
+    from neb_slam_ros.keyframe_link import KeyframeMeta
+    from neb_slam_ros.suite import launch
+
+    _, frames = offline[:2]
+    out = tmp_path / "suite"
+    checkpoint = out / "checkpoint.pt"
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):
+        os.environ[key] = ros_env[key]
+    context = rclpy.Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("kill_the_mapper", namespace="neb_slam", context=context)
+    sent: list[int] = []
+    node.create_subscription(
+        String, "keyframe/meta", lambda m: sent.append(KeyframeMeta.from_json(m.data).keyframe_id), qos.keyframes()
+    )
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+
+    def kill_and_restart_mapper(procs, start_node):
+        deadline = time.monotonic() + 300
+        while 1 not in sent:
+            assert procs["mapper"].poll() is None, (out / "logs" / "mapper.log").read_text()
+            assert time.monotonic() < deadline, f"keyframe 1 was not sent (sent: {sent})"
+            executor.spin_once(timeout_sec=0.01)
+        procs["mapper"].kill()
+        procs["mapper"].wait()
+        procs["mapper"] = start_node("mapper")
+
+    try:
+        run = launch(
+            small_bag, out, CONFIG, env=ros_env, extra_params={"checkpoint_every": 1}, during=kill_and_restart_mapper
+        )
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    logs = {k: p.read_text() for k, p in run.logs.items()}
+    assert all(code == 0 for code in run.exit_codes.values()), (run.exit_codes, logs)
+    assert f"resuming {checkpoint} with 1 keyframes" in logs["mapper"], logs["mapper"]
+    assert "the mapper restarted with" in logs["tracker"], logs["tracker"]
+    est = read_tum_trajectory(out / "trajectory.txt")
+    assert est.stamps_ns.tolist() == [f.stamp_ns for f in frames]
+    ate_ref = _ate_cm(offline[0], frames)
+    assert _ate_cm(est, frames) <= 1.5 * ate_ref, (_ate_cm(est, frames), ate_ref)
+    assert run.metrics["n_keyframes"] == 2
+    assert not checkpoint.exists()  # stopped normally: map.pt continues the map
+
+
 def test_bad_input_is_warned_about_and_skipped_and_the_tracker_keeps_running(ros_env):
     rclpy = pytest.importorskip("rclpy")
     from rclpy.qos import QoSProfile, ReliabilityPolicy

@@ -55,11 +55,17 @@ class Checkpoint:
 
 def save_checkpoint(path: str | Path, slam: Slam, run_log: RunLog, resume: dict | None = None, wall_s: float = 0.0):
     """Write a checkpoint of ``slam`` and ``run_log`` to ``path`` atomically (see the module docstring)."""
-    path = Path(path)
     ckpt = Checkpoint(slam, run_log, dict(resume or {}), torch.get_rng_state(), wall_s, time.time())
+    return write_atomically(path, ckpt)
+
+
+def write_atomically(path: str | Path, state: object) -> Path:
+    """``torch.save`` ``state`` to ``path`` through a temporary file that is synced and renamed over it: a
+    kill at any moment leaves either the previous file or the new one, whole."""
+    path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("wb") as fh:
-        torch.save(ckpt, fh)
+        torch.save(state, fh)
         fh.flush()
         os.fsync(fh.fileno())
     tmp.replace(path)
@@ -74,18 +80,25 @@ def save_checkpoint(path: str | Path, slam: Slam, run_log: RunLog, resume: dict 
     return path
 
 
-def load_checkpoint(path: str | Path, restore_rng: bool = True) -> Checkpoint:
-    """Read a checkpoint written by :func:`save_checkpoint`; with ``restore_rng`` torch's global random
-    state is set back to the checkpoint's. Errors name the file."""
+def read_state(path: str | Path, kind: type) -> object:
+    """What :func:`write_atomically` wrote to ``path``, which must be a ``kind``; errors name the file."""
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "checkpoint not found")
     try:
-        ckpt = torch.load(path, weights_only=False)
+        state = torch.load(path, weights_only=False)
     except Exception as exc:
         raise DatasetError(path, f"not a readable checkpoint ({type(exc).__name__}: {exc})") from None
-    if not isinstance(ckpt, Checkpoint):
-        raise DatasetError(path, f"not a checkpoint (holds a {type(ckpt).__name__})")
+    if not isinstance(state, kind):
+        raise DatasetError(path, f"not a {kind.__name__} (holds a {type(state).__name__})")
+    return state
+
+
+def load_checkpoint(path: str | Path, restore_rng: bool = True) -> Checkpoint:
+    """Read a checkpoint written by :func:`save_checkpoint`; with ``restore_rng`` torch's global random
+    state is set back to the checkpoint's. Errors name the file."""
+    path = Path(path)
+    ckpt = read_state(path, Checkpoint)
     if ckpt.version != FORMAT_VERSION:
         raise DatasetError(path, f"checkpoint format {ckpt.version}; this version reads {FORMAT_VERSION}")
     if restore_rng and ckpt.torch_rng is not None:

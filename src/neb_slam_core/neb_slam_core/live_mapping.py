@@ -115,21 +115,30 @@ class _Work:
 
 
 class MappingSide:
-    """The mapper and loop-closer threads over ``block_map`` (the mapper's copy); messages to ``emit``
-    (module docstring). :meth:`close` ends both and returns the final map and keyframe store.
+    """The mapper and loop-closer threads over ``block_map`` (the mapper's copy), or over ``backend``'s when
+    one is given (a checkpoint's); messages to ``emit`` (module docstring). :meth:`close` ends both and
+    returns the final map and keyframe store.
 
     With ``closes_loops`` false there is no loop thread (whatever ``cfg.loop`` says): corrections come from
     outside through :meth:`correct` (the ROS ``mapper`` node, whose loop closer is a node of its own).
     Another thread that reads the map or the keyframes while the side runs holds :attr:`map_lock`, which
     the mapper thread holds while it changes them."""
 
-    def __init__(self, cfg: SlamConfig, block_map: BlockMap, emit: Emit, closes_loops: bool = True):
+    def __init__(
+        self,
+        cfg: SlamConfig,
+        block_map: BlockMap,
+        emit: Emit,
+        closes_loops: bool = True,
+        backend: Backend | None = None,
+    ):
         self.cfg = cfg
         self._emit_to = emit
         # the C++ kernels (and what imports them lazily) are loaded before the threads start, which would
         # otherwise race for a half-imported module
         _ext.prepare(cfg.grid_backend)
-        self.backend = Backend(cfg, block_map)
+        # a backend restored from a checkpoint goes on with its map, keyframes and optimiser
+        self.backend = Backend(cfg, block_map) if backend is None else backend
         self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled and closes_loops else None
         self.map_lock = threading.RLock()
         # the loop thread adds keyframes to the closer's database while a lost tracker queries it

@@ -87,7 +87,8 @@ class KeyframeMeta:
 
 class KeyframeAssembler:
     """Collects the five parts of each keyframe by stamp and hands out complete keyframes in keyframe-id
-    order (a keyframe whose predecessor is still incomplete waits for it)."""
+    order (a keyframe whose predecessor is still incomplete waits for it); a keyframe that comes again
+    after it was handed out (a tracker sends keyframes again to a restarted mapper) is dropped."""
 
     def __init__(self, capacity: int = 200):
         self.capacity = capacity
@@ -100,7 +101,8 @@ class KeyframeAssembler:
         parts[part] = value
         if len(parts) == len(KEYFRAME_PARTS):
             del self._parts[stamp_ns]
-            self._complete[parts["meta"].keyframe_id] = parts
+            if parts["meta"].keyframe_id >= self.next_id:  # lower: sent again, and handed on already
+                self._complete[parts["meta"].keyframe_id] = parts
         while len(self._parts) > self.capacity:  # parts whose siblings never came
             del self._parts[min(self._parts)]
 

@@ -18,6 +18,15 @@ keyframes received, publishes the final mesh and writes ``map.pt``, ``mesh.ply``
 (every frame of the tracker's latest ``path``, each moved with the final pose of its keyframe) and
 ``config.yaml`` there.
 
+Every ``checkpoint_every`` integrated keyframes it writes ``output_dir/checkpoint.pt`` (atomically: the
+map and its optimiser, the keyframe store and poses, which keyframe stamp has which id). Started again
+with the same ``output_dir`` (after a crash or a ``SIGKILL``) it resumes from it: it offers the whole map
+with the keyframes it kept on ``map_update``, under a new ``epoch``, and the tracker, which keeps the
+keyframes the mapper's last checkpoint does not hold, sends those again. Loop corrections that came while
+it was down are lost (the loop closer's next ones carry on). Every update says how many keyframes the
+last checkpoint holds (``durable_keyframes``), so that the tracker can forget the older ones. A mapper
+that stops normally removes its checkpoint (``map_file`` continues its ``map.pt``).
+
 With ``map_file`` (a ``map.pt`` of ``save_map`` or of ``neb-slam run``) it continues that map: its
 blocks and decoders are the starting map, and until the first keyframe arrives the whole map goes out
 on ``map_update`` (version 1) whenever a new subscriber appears, so a tracker started with
@@ -43,13 +52,14 @@ import torch
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import UInt8MultiArray
 
+from neb_slam_core.checkpoint import CHECKPOINT_FILE, read_state, write_atomically
 from neb_slam_core.geometry.se3 import invert
 from neb_slam_core.io.run_dir import MAP_FILE, TRAJECTORY_FILE, RunDirectory
 from neb_slam_core.io.trajectory import Trajectory
 from neb_slam_core.live_mapping import Handoff, MappingSide, Progress
 from neb_slam_core.scene import map_update
 from neb_slam_core.scene.persistence import save_map
-from neb_slam_core.slam import corrected_trajectory, new_block_map
+from neb_slam_core.slam import Backend, corrected_trajectory, new_block_map
 from neb_slam_ros import conversions, qos
 from neb_slam_ros._node_main import run_node
 from neb_slam_ros.keyframe_link import KeyframeMeta, KeyframeSubscriber
@@ -66,6 +76,7 @@ class MapperOptions:
     mesh_period_s: float = 30.0
     frame_id: str = "map"
     map_file: str = ""
+    checkpoint_every: int = 20
 
     PARAMETER_DOCS = {
         "output_dir": "where save_mesh, save_map and the shutdown write; empty: runs/mapper-<date>-<time>",
@@ -73,11 +84,27 @@ class MapperOptions:
         "mesh_period_s": "publish the mesh this often (0: only on save_mesh and at shutdown)",
         "frame_id": "frame of the published mesh: the tracker's map_frame (its keyframes say how the engine's "
         "world sits in it)",
+        "checkpoint_every": "write output_dir/checkpoint.pt every this many keyframes, and resume from it when "
+        "started again with the same output_dir (0: never)",
     }
 
     def check(self) -> None:
         require(self.mesh_period_s >= 0, "mesh_period_s", ">= 0", self.mesh_period_s)
+        require(self.checkpoint_every >= 0, "checkpoint_every", ">= 0 (0: never)", self.checkpoint_every)
         require(bool(self.frame_id), "frame_id", "a frame name", self.frame_id)
+
+
+@dataclass
+class MapperState:
+    """What the mapper's checkpoint holds: the mapping side's backend (map, optimiser, keyframes and their
+    poses), the id of each keyframe stamp, the update counter, the map frame and the loops applied."""
+
+    backend: Backend
+    keyframe_ids: dict[int, int]
+    version: int
+    T_map_world: np.ndarray
+    n_loops: int
+    torch_rng: torch.Tensor
 
 
 class MapperNode(NebNode):
@@ -89,10 +116,17 @@ class MapperNode(NebNode):
         super().__init__("mapper", MapperOptions)
         self.out = Path(self.opt.output_dir or time.strftime("runs/mapper-%Y%m%d-%H%M%S"))
         torch.manual_seed(self.cfg.seed)
-        loaded = map_parameter(self.cfg, self.opt.map_file)
-        self.block_map = new_block_map(self.cfg) if loaded is None else loaded
+        self._checkpoint = self.out / CHECKPOINT_FILE if self.opt.checkpoint_every else None
+        state = self._checkpoint_state()
+        loaded = map_parameter(self.cfg, self.opt.map_file) if state is None else None
+        if state is not None:
+            self.block_map = state.backend.block_map
+        else:
+            self.block_map = new_block_map(self.cfg) if loaded is None else loaded
         self._rng = np.random.default_rng(self.cfg.seed)
         self._version = 0 if loaded is None else 1  # version 1: the loaded map, whole
+        self._epoch = time.time_ns()  # this start's: trackers tell a restarted mapper by it
+        self._durable = -1 if self._checkpoint is None else 0  # keyframes in the last checkpoint
         self._path: tuple[np.ndarray, np.ndarray] | None = None  # the tracker's path, in frame_id
         self._T_map_world = np.eye(4)  # the engine's world in frame_id, from the keyframes
         self._new_loops: list[tuple[int, np.ndarray, np.ndarray]] = []  # corrections not looked at yet
@@ -101,14 +135,23 @@ class MapperNode(NebNode):
         self._messages: deque[tuple[str, object]] = deque()  # from the mapping side, to publish or log
         self._progress = Progress()
         self._n_loops = 0
+        if state is not None:
+            # the resumed map, offered whole, is the next version: later updates count on from it
+            self._keyframe_ids, self._version = dict(state.keyframe_ids), state.version + 1
+            self._T_map_world, self._n_loops = state.T_map_world, state.n_loops
+            self._durable = len(state.backend.keyframes)
+            torch.set_rng_state(state.torch_rng)
 
         self._keyframes = KeyframeSubscriber(self, self.cond)
         self._assembler = self._keyframes.assembler
+        self._assembler.next_id = len(self._keyframe_ids)  # a tracker may send the checkpoint's keyframes again
         self.create_subscription(PathMsg, "path", self._on_path, qos.state())
         self.create_subscription(PathMsg, "loop_closure", self._on_loop, qos.events(10))
         self.pub_update = self.create_publisher(UInt8MultiArray, "map_update", qos.events(10))
         # the engine's mapping side: the mapper in a thread of its own, loop corrections from the loop closer
-        self.side = MappingSide(self.cfg, self.block_map, self._on_side, closes_loops=False)
+        self.side = MappingSide(
+            self.cfg, self.block_map, self._on_side, False, None if state is None else state.backend
+        )
         self.backend = self.side.backend
         self.map_outputs = MapOutputs(
             self,
@@ -124,10 +167,15 @@ class MapperNode(NebNode):
             truncation_m=self.cfg.render.truncation_m,
         )
         self._n_update_subscribers = 0
-        if self.opt.map_file:
+        self._offered = len(self._keyframe_ids)  # the map is offered whole until a keyframe after these comes
+        if self.opt.map_file or state is not None:
             self._base_timer = self.create_timer(0.5, self._offer_loaded_map)
+        if state is not None:
+            self.map_outputs.align(self._T_map_world)
         self.start_worker()
-        start = f", continuing {self.opt.map_file} ({len(self.block_map)} blocks)" if self.opt.map_file else ""
+        start = f", continuing {self.opt.map_file} ({len(self.block_map)} blocks)" if loaded is not None else ""
+        if state is not None:
+            start = f", resuming {self._checkpoint} with {self._durable} keyframes"
         self.get_logger().info(
             f"neb_slam mapper started (config {self.get_parameter('config').value}, output {self.out}{start})"
         )
@@ -135,8 +183,9 @@ class MapperNode(NebNode):
     # ------------------------------------------------------------------ callbacks (executor thread)
 
     def _offer_loaded_map(self) -> None:
-        """Until the first keyframe: the loaded map, whole, to each new map_update subscriber (a
-        volatile topic gives a late subscriber nothing that was sent before it came)."""
+        """Until a keyframe after those it started with: the loaded or resumed map, whole, to each new
+        map_update subscriber (a volatile topic gives a late subscriber nothing that was sent before it
+        came)."""
         n = self.pub_update.get_subscription_count()
         if n > self._n_update_subscribers:
             self.submit(self._publish_loaded_map, "publish_loaded_map")
@@ -195,6 +244,8 @@ class MapperNode(NebNode):
                 self._publish_update(payload)
             elif kind == "error":
                 self.get_logger().error(f"mapping failed: {payload}")
+        if self._checkpoint is not None and len(self.backend.keyframes) >= self._durable + self.opt.checkpoint_every:
+            self._save_checkpoint()
         for parts in ready:
             try:
                 self._submit(parts)
@@ -256,20 +307,52 @@ class MapperNode(NebNode):
         return True
 
     def _publish_loaded_map(self) -> str:
-        if len(self.backend.keyframes):
+        if len(self.backend.keyframes) > self._offered:
             self._base_timer.cancel()  # the map is moving on: trackers get it from the updates now
             return "not sent: keyframes have arrived"
-        data = map_update.encode(
-            map_update.capture(self.block_map, range(len(self.block_map)), 1, -1, [], np.zeros((0, 4, 4)))
-        )
-        self.pub_update.publish(UInt8MultiArray(data=data))
-        return f"{len(self.block_map)} blocks sent"
+        with self.side.map_lock:
+            kfs = self.backend.keyframes
+            stamps = np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64)
+            poses = kfs.poses() if len(kfs) else np.zeros((0, 4, 4))
+            ack = int(stamps[-1]) if len(stamps) else -1
+            update = map_update.capture(self.block_map, range(len(self.block_map)), 0, ack, stamps, poses)
+        # every offer carries the same version: a tracker that has it already ignores the next
+        self._publish_update(update, renumber=False)
+        return f"{len(self.block_map)} blocks and {len(stamps)} keyframe poses sent"
 
-    def _publish_update(self, update: map_update.MapUpdate) -> None:
-        # this node numbers what it sends (the loaded map is version 1)
-        self._version += 1
+    def _publish_update(self, update: map_update.MapUpdate, renumber: bool = True) -> None:
+        # this node numbers what it sends (a loaded or resumed map offered whole has the version it started
+        # with, every offer the same), and says which start sent it and what its last checkpoint holds
+        if renumber:
+            self._version += 1
         update.version = self._version
+        update.epoch, update.durable_keyframes = self._epoch, self._durable
         self.pub_update.publish(UInt8MultiArray(data=map_update.encode(update)))
+
+    # ------------------------------------------------------------------ checkpoints (worker thread)
+
+    def _checkpoint_state(self) -> MapperState | None:
+        """The state of ``output_dir``'s checkpoint, when there is one to resume from."""
+        if self._checkpoint is None or not self._checkpoint.is_file():
+            return None
+        if self.opt.map_file:
+            raise ValueError(
+                f"map_file {self.opt.map_file} and the checkpoint {self._checkpoint} to resume from: give "
+                "another output_dir, or leave map_file out to resume"
+            )
+        return read_state(self._checkpoint, MapperState)
+
+    def _save_checkpoint(self) -> None:
+        """The integrated keyframes, their map and the node's bookkeeping, atomically into ``checkpoint.pt``."""
+        with self.side.map_lock:  # the mapping thread changes none of it meanwhile
+            n = len(self.backend.keyframes)
+            ids = {stamp: i for stamp, i in self._keyframe_ids.items() if i < n}
+            with self.cond:
+                T_map_world = self._T_map_world.copy()
+            state = MapperState(self.backend, ids, self._version, T_map_world, self._n_loops, torch.get_rng_state())
+            self.out.mkdir(parents=True, exist_ok=True)
+            write_atomically(self._checkpoint, state)
+        self._durable = n
 
     # ------------------------------------------------------------------ outputs (worker thread)
 
@@ -318,6 +401,8 @@ class MapperNode(NebNode):
             written.append(self.map_outputs.save_mesh(ack_timeout_s=FINAL_MESH_ACK_S))
         except Exception as exc:
             self.final_log(f"mesh not written: {type(exc).__name__}: {exc}", "WARN")
+        if self._checkpoint is not None:  # stopped, not crashed: map.pt (map_file) continues this map
+            self._checkpoint.unlink(missing_ok=True)
         p = self._progress
         self.final_log(
             f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} "

@@ -25,6 +25,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,11 +80,14 @@ def launch(
     map_file: Path | None = None,
     live: bool = False,
     rate: float = 1.0,
+    during: Callable[[dict[str, subprocess.Popen], Callable[[str], subprocess.Popen]], None] | None = None,
 ) -> SuiteRun:
     """Replay ``bag`` (``count`` frames from frame ``start``; 0: all) through the suite into run directory
     ``out``, on an empty map or continuing the checkpoint ``map_file``. By default in lockstep, as fast as
     the engine goes; ``live``: at ``rate`` times the recorded speed without lockstep, the engine taking
-    the newest frame whenever it is free (the tracker waits for no map update or loop verdict)."""
+    the newest frame whenever it is free (the tracker waits for no map update or loop verdict).
+    ``during`` is called once every node runs, with the processes by node name and a function that starts
+    a node again (its log goes on): a test kills and restarts nodes with it."""
     out.mkdir(parents=True, exist_ok=True)
     logs_dir = out / "logs"
     logs_dir.mkdir(exist_ok=True)
@@ -118,16 +122,23 @@ def launch(
     procs: dict[str, subprocess.Popen] = {}
     run = SuiteRun(out, {}, 0.0)
     t0 = time.perf_counter()
+
+    def start_node(node: str) -> subprocess.Popen:
+        again = node in run.logs  # a restart: its log goes on
+        run.logs[node] = logs_dir / f"{node}.log"
+        return subprocess.Popen(
+            _node_cmd(node, plan[node]),
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=run.logs[node].open("a" if again else "w"),
+            stderr=subprocess.STDOUT,
+        )
+
     try:
-        for node, params in plan.items():
-            run.logs[node] = logs_dir / f"{node}.log"
-            procs[node] = subprocess.Popen(
-                _node_cmd(node, params),
-                env=env,
-                stdin=subprocess.DEVNULL,
-                stdout=run.logs[node].open("w"),
-                stderr=subprocess.STDOUT,
-            )
+        for node in plan:
+            procs[node] = start_node(node)
+        if during is not None:
+            during(procs, start_node)
         driver = "slam" if one_process else "bag_replay"
         run.exit_codes[driver] = procs[driver].wait()  # the replay ends the process when the bag ends
         run.wall_s = time.perf_counter() - t0

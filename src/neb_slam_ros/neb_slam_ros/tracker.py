@@ -15,6 +15,11 @@ map. Frames that arrive meanwhile
 are queued (``frame_queue`` of them; older ones are dropped with a counted warning; lockstep replay never
 queues more than one).
 
+A mapper that restarts from its checkpoint (``checkpoint_every``) announces itself with a new ``epoch`` on
+``map_update`` and the keyframes it kept: the tracker takes its map and sends the keyframes after those
+again, from the ones it keeps until a mapper checkpoint holds them (at most ``resend_keyframes``); it
+goes on without a restart of its own.
+
 Example::
 
     ros2 run neb_slam_ros tracker --ros-args -p config:=tum
@@ -23,6 +28,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections import deque
@@ -59,6 +65,7 @@ class TrackerOptions:
     map_timeout_s: float = 600.0
     initial_pose_timeout_s: float = 10.0
     path_period_s: float = 1.0
+    resend_keyframes: int = 40
 
     PARAMETER_DOCS = {
         "map_sync": "after a keyframe that triggers mapping, wait for its map update before the next frame",
@@ -68,12 +75,15 @@ class TrackerOptions:
         "initial_pose_timeout_s": "how long the first frame waits for its pose on ground_truth_topic",
         "path_period_s": "publish the path at most this often, and at once after a loop correction (0: after "
         "every frame)",
+        "resend_keyframes": "keyframes kept for a mapper that restarts from its checkpoint, at most (the ones "
+        "its last checkpoint holds are let go; 0: none)",
     }
 
     def check(self) -> None:
         require(self.map_timeout_s > 0, "map_timeout_s", "> 0", self.map_timeout_s)
         require(self.initial_pose_timeout_s >= 0, "initial_pose_timeout_s", ">= 0", self.initial_pose_timeout_s)
         require(self.path_period_s >= 0, "path_period_s", ">= 0", self.path_period_s)
+        require(self.resend_keyframes >= 0, "resend_keyframes", ">= 0", self.resend_keyframes)
 
 
 class TrackerNode(NebNode):
@@ -92,6 +102,9 @@ class TrackerNode(NebNode):
         self._awaited_loop: int | None = None  # stamp of the keyframe whose loop verdict we wait for
         self._loop_checked = -1
         self._map_version = 0
+        self._mapper_epoch: int | None = None  # the start of the mapper whose updates come
+        # keyframes sent that the mapper's last checkpoint does not hold: a restarted mapper gets them again
+        self._unsaved: deque[tuple[KeyframeMeta, RgbdFrame]] = deque()
         self._loop_stamp = -1  # the newest loop correction the map updates have carried
         self._waited_since: float | None = None
         self._keyframe_stamps: list[int] = []
@@ -207,6 +220,9 @@ class TrackerNode(NebNode):
         return T
 
     def _apply(self, update: map_update.MapUpdate) -> None:
+        restarted = self._mapper_epoch is not None and update.epoch not in (0, self._mapper_epoch)
+        if self._mapper_epoch is None or restarted:
+            self._mapper_epoch, self._map_version = update.epoch, 0  # its versions count from its start
         if update.version <= self._map_version:
             return  # a duplicate or a late one: newer state is already in
         try:
@@ -215,7 +231,10 @@ class TrackerNode(NebNode):
             self.get_logger().error(f"map update {update.version} does not fit this tracker's map: {exc}")
             return
         self._map_version = update.version
-        self._acked = max(self._acked, update.ack_stamp_ns)
+        self._acked = update.ack_stamp_ns if restarted else max(self._acked, update.ack_stamp_ns)
+        self._forget_saved(update.durable_keyframes)
+        if restarted:
+            self._resend(len(update.keyframe_poses))
         loop = update.loop_stamp_ns > self._loop_stamp  # a loop correction: the path goes out at once
         self._loop_stamp = max(self._loop_stamp, update.loop_stamp_ns)
         if self.frontend is not None and len(update.keyframe_poses):
@@ -266,10 +285,9 @@ class TrackerNode(NebNode):
         }
 
     def _publish_keyframe(self, step: FrontendStep) -> None:
-        r, f = step.result, step.frame
-        ns = r.stamp_ns
+        r = step.result
         meta = KeyframeMeta(
-            ns,
+            r.stamp_ns,
             r.frame_index,
             step.keyframe_id,
             step.map_now,
@@ -279,10 +297,42 @@ class TrackerNode(NebNode):
             self.poses.T_map_world,
             self._first_iterations() if step.first else None,
         )
+        self._send_keyframe(meta, step.frame)
+        if self.opt.resend_keyframes:
+            self._unsaved.append((meta, step.frame))
+            while len(self._unsaved) > self.opt.resend_keyframes:
+                self._unsaved.popleft()
+
+    def _forget_saved(self, durable_keyframes: int) -> None:
+        """Let go of the keyframes the mapper's last checkpoint holds (all: it writes none, -1)."""
+        while self._unsaved and (durable_keyframes < 0 or self._unsaved[0][0].keyframe_id < durable_keyframes):
+            self._unsaved.popleft()
+
+    def _resend(self, first_id: int) -> None:
+        """Keyframes ``first_id`` on to a mapper that restarted with the keyframes before them."""
+        n_sent = len(self.frontend.keyframe_poses) if self.frontend is not None else 0
+        if first_id >= n_sent:
+            self.get_logger().info(f"the mapper restarted with all {first_id} keyframes")
+            return
+        kept = [(meta, frame) for meta, frame in self._unsaved if meta.keyframe_id >= first_id]
+        if not kept or kept[0][0].keyframe_id != first_id:
+            self.get_logger().error(
+                f"the mapper restarted with {first_id} of {n_sent} keyframes, and keyframes {first_id}.."
+                f"{(kept[0][0].keyframe_id if kept else n_sent) - 1} are no longer kept (resend_keyframes "
+                f"{self.opt.resend_keyframes}): its map misses them"
+            )
+        centres = block_centres(self.block_map)
+        for meta, frame in kept:  # at the poses the keyframes have now, with every block allocated since
+            T = self.frontend.keyframe_poses[meta.keyframe_id].copy()
+            self._send_keyframe(dataclasses.replace(meta, T_world_cam=T, block_centres=centres), frame)
+        self.get_logger().warning(f"the mapper restarted with {first_id} of {n_sent} keyframes: {len(kept)} sent again")
+
+    def _send_keyframe(self, meta: KeyframeMeta, f: RgbdFrame) -> None:
+        ns = meta.stamp_ns
         self.pub_kf["rgb"].publish(conversions.rgb_msg(f.rgb, ns, CAMERA_FRAME))
         self.pub_kf["depth"].publish(conversions.depth_msg(f.depth_m, ns, CAMERA_FRAME))
         self.pub_kf["camera_info"].publish(conversions.camera_info_msg(f.intrinsics, None, ns, CAMERA_FRAME))
-        self.pub_kf["pose"].publish(conversions.pose_msg(r.T_world_cam, ns, WORLD_FRAME))
+        self.pub_kf["pose"].publish(conversions.pose_msg(meta.T_world_cam, ns, WORLD_FRAME))
         self.pub_kf["meta"].publish(String(data=meta.to_json()))
 
     # ------------------------------------------------------------------ shutdown

@@ -48,13 +48,13 @@ def test_layout_sizes_are_the_documented_ones():
     table_numel = m.blocks[0].grid.table.numel()
     n_decoder = sum(p.numel() for p in m.decoders.parameters())
     record = 125  # 10^3 voxels, 8 a byte
-    assert len(data) == 56 + 2 * (16 + 4 * table_numel + record) + 4 * n_decoder + 2 * 8 + 2 * 128
+    assert len(data) == 68 + 2 * (16 + 4 * table_numel + record) + 4 * n_decoder + 2 * 8 + 2 * 128
     assert data[:4] == b"NEBU"
-    assert struct.unpack_from("<HHQq", data, 4) == (2, 0, 5, 123)
-    assert struct.unpack_from("<IIIIIqI", data, 24) == (2, table_numel, n_decoder, 2, 56, 77, record)
+    assert struct.unpack_from("<HHQq", data, 4) == (3, 0, 5, 123)
+    assert struct.unpack_from("<IIIIIqIQi", data, 24) == (2, table_numel, n_decoder, 2, 68, 77, record, 0, -1)
     # the first block record is block 0 (ids are sorted), its centre follows its id, its record its table
-    assert struct.unpack_from("<I3f", data, 56) == (0, 0.0, 0.0, 0.0)
-    first = data[56 + 16 + 4 * table_numel :][:record]
+    assert struct.unpack_from("<I3f", data, 68) == (0, 0.0, 0.0, 0.0)
+    first = data[68 + 16 + 4 * table_numel :][:record]
     bits = np.unpackbits(np.frombuffer(first, np.uint8), bitorder="little").astype(bool)
     assert np.array_equal(bits, m.blocks[0].observed.numpy().reshape(-1))
     assert map_update.decode(data).loop_stamp_ns == 77
@@ -67,7 +67,7 @@ def test_a_format_1_update_still_reads(header_bytes):
     receiver's own record as it was)."""
     m = trained(observed_voxel_m=0.0)  # no record: the blocks are laid out as format 1 lays them out
     data = map_update.encode(map_update.capture(m, [1], 3, 9, [5], np.eye(4)[None], loop_stamp_ns=123))
-    old = bytearray(data[:header_bytes] + data[56:])
+    old = bytearray(data[:header_bytes] + data[68:])
     struct.pack_into("<H", old, 4, 1)
     struct.pack_into("<I", old, 40, header_bytes)
     u = map_update.decode(bytes(old))
@@ -79,6 +79,21 @@ def test_a_format_1_update_still_reads(header_bytes):
     receiver.blocks[0].observed.fill_(True)
     map_update.apply(u, receiver)
     assert receiver.blocks[0].observed.all() and not receiver.blocks[1].observed.any()
+
+
+def test_the_senders_epoch_and_durable_keyframes_round_trip_and_a_format_2_update_reads_without_them():
+    m = trained()
+    update = map_update.capture(m, [0], 4, 9, [5], np.eye(4)[None])
+    update.epoch, update.durable_keyframes = 2**63 + 5, 17
+    data = map_update.encode(update)
+    u = map_update.decode(data)
+    assert (u.epoch, u.durable_keyframes, u.version) == (2**63 + 5, 17, 4)
+    old = bytearray(data[:56] + data[68:])  # format 2: the header ends after observed_bytes
+    struct.pack_into("<H", old, 4, 2)
+    struct.pack_into("<I", old, 40, 56)
+    u2 = map_update.decode(bytes(old))
+    assert (u2.epoch, u2.durable_keyframes, u2.version, u2.block_ids) == (0, -1, 4, [0])
+    np.testing.assert_array_equal(u2.blocks[0].table, u.blocks[0].table)
 
 
 def test_applying_updates_reproduces_the_senders_map_exactly():

@@ -6,11 +6,17 @@ and the current poses of all keyframes (mapping refines them). Applying every up
 the mapper's map exactly (float32 tables and decoders, float64 poses: no rounding on the way); a
 receiver's observed-space record becomes the union of its own and the mapper's.
 
-Binary layout, version 2, little-endian, no padding::
+A mapper that checkpoints says which of its keyframes a restart would keep (``durable_keyframes``), and
+every start of a mapper has its own ``epoch``: a receiver that sees a new epoch knows the sender restarted
+(from a checkpoint, with the keyframes the update's poses list), starts counting versions anew and hands it
+the keyframes it lacks.
 
-    header (56 bytes)
+Binary layout, version 3, little-endian, no padding::
+
+    header (68 bytes)
       char[4]  magic            b"NEBU"
-      uint16   format           2 (1: without observed_bytes; still read)
+      uint16   format           3 (1: without observed_bytes, 2: without epoch and durable_keyframes;
+                                both still read)
       uint16   reserved         0
       uint64   version          update counter of the sender, 1, 2, 3, ... (receivers drop old ones)
       int64    ack_stamp_ns     stamp of the newest keyframe the map has integrated (-1: none)
@@ -18,10 +24,13 @@ Binary layout, version 2, little-endian, no padding::
       uint32   table_numel      float32 values per block table (L * T * F of the block config)
       uint32   n_decoder        float32 values of all decoder parameters
       uint32   n_keyframes      K
-      uint32   header_bytes     56 (readers skip to here: later versions may append fields)
+      uint32   header_bytes     68 (readers skip to here: later versions may append fields)
       int64    loop_stamp_ns    stamp of the newest ``loop_closure`` correction the map has handled (-1:
                                 none); appended after the first 44 bytes: a 44-byte header reads as -1
       uint32   observed_bytes   bytes of each block's observed-space record (0: none); format 2
+      uint64   epoch            the sender's start: a new value after each restart (0: not told); format 3
+      int32    durable_keyframes  keyframes 0..n-1 are in the sender's last checkpoint (-1: it writes
+                                none); format 3
     B times
       uint32   block_id
       float32  centre_world[3]  metres
@@ -49,10 +58,11 @@ from ..errors import NebSlamError
 from .block_map import BlockMap
 
 MAGIC = b"NEBU"
-FORMAT_VERSION = 2
-READABLE_FORMATS = (1, 2)
+FORMAT_VERSION = 3
+READABLE_FORMATS = (1, 2, 3)
 _HEADER = struct.Struct("<4sHHQqIIIII")  # the first 44 bytes; header_bytes says where the blocks start
 _HEADER_EXTRA = struct.Struct("<qI")  # fields appended since: loop_stamp_ns, observed_bytes (format 2)
+_HEADER_RESTART = struct.Struct("<Qi")  # epoch, durable_keyframes (format 3)
 _LOOP_STAMP = struct.Struct("<q")
 _BLOCK_HEAD = struct.Struct("<I3f")
 
@@ -88,6 +98,8 @@ class MapUpdate:
     keyframe_stamps_ns: np.ndarray
     keyframe_poses: np.ndarray
     loop_stamp_ns: int = -1
+    epoch: int = 0
+    durable_keyframes: int = -1
 
     @property
     def block_ids(self) -> list[int]:
@@ -145,9 +157,10 @@ def encode(update: MapUpdate) -> bytes:
             table_numel,
             update.decoders.size,
             len(stamps),
-            _HEADER.size + _HEADER_EXTRA.size,
+            _HEADER.size + _HEADER_EXTRA.size + _HEADER_RESTART.size,
         ),
         _HEADER_EXTRA.pack(update.loop_stamp_ns, observed_bytes),
+        _HEADER_RESTART.pack(update.epoch, update.durable_keyframes),
     ]
     for b in sorted(update.blocks, key=lambda b: b.block_id):
         parts.append(_BLOCK_HEAD.pack(b.block_id, *map(float, b.centre_world)))
@@ -169,9 +182,11 @@ def decode(data) -> MapUpdate:
         raise MapUpdateError(f"map update format {fmt} is not supported (this software reads {READABLE_FORMATS})")
     if header_bytes < _HEADER.size or header_bytes > len(buf):
         raise MapUpdateError(f"map update header_bytes {header_bytes} is outside {_HEADER.size}..{len(buf)}")
-    loop_stamp, observed_bytes = -1, 0
+    loop_stamp, observed_bytes, epoch, durable = -1, 0, 0, -1
     if fmt >= 2 and header_bytes >= _HEADER.size + _HEADER_EXTRA.size:
         loop_stamp, observed_bytes = _HEADER_EXTRA.unpack_from(buf, _HEADER.size)
+        if fmt >= 3 and header_bytes >= _HEADER.size + _HEADER_EXTRA.size + _HEADER_RESTART.size:
+            epoch, durable = _HEADER_RESTART.unpack_from(buf, _HEADER.size + _HEADER_EXTRA.size)
     elif header_bytes >= _HEADER.size + _LOOP_STAMP.size:
         (loop_stamp,) = _LOOP_STAMP.unpack_from(buf, _HEADER.size)
     block_bytes = _BLOCK_HEAD.size + 4 * table_numel + observed_bytes
@@ -198,7 +213,7 @@ def decode(data) -> MapUpdate:
     stamps = np.frombuffer(buf, "<i8", n_kf, offset)
     offset += 8 * n_kf
     poses = np.frombuffer(buf, "<f8", 16 * n_kf, offset).reshape(n_kf, 4, 4)
-    return MapUpdate(version, ack, blocks, decoders, stamps, poses, loop_stamp)
+    return MapUpdate(version, ack, blocks, decoders, stamps, poses, loop_stamp, epoch, durable)
 
 
 def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:

@@ -76,6 +76,16 @@ def _interruption(value) -> str:
     )
 
 
+def _updates(value) -> str:
+    """map_updates' per-source figures: MB/s whole float32 -> as sent; the tracked poses' largest difference."""
+    if not isinstance(value, dict):
+        return fmt(value)
+    return (
+        f"{fmt(value.get('mb_per_s_old'))} -> {fmt(value.get('mb_per_s_new'))} MB/s; "
+        f"{fmt(value.get('pose_diff_cm_max'))} cm"
+    )
+
+
 def _words(value) -> str:
     return " ".join(str(v) for v in value) if isinstance(value, (list, tuple)) else fmt(value)
 
@@ -219,6 +229,16 @@ COLUMNS: dict[str, list[Column]] = {
         C("path_old_ms_per_frame", "path ms/frame, reference"),
         C("path_new_ms_per_frame", "new"),
         C("path_ratio", "ratio"),
+        C("map_update_mb_per_s_old", "map_update MB/s demo, whole float32"),
+        C("map_update_mb_per_s_new", "as sent"),
+        C("map_update_tum_mb_per_s_old", "TUM, whole float32"),
+        C("map_update_tum_mb_per_s_new", "as sent"),
+        C("map_update_pose_diff_cm_max", "tracked pose difference cm, demo"),
+        C("map_update_tum_pose_diff_cm_max", "TUM"),
+    ],
+    "map_updates": [
+        C("demo", "demo: map_update whole float32 -> as sent; tracked pose difference", _updates),
+        C("tum", "TUM fr1_xyz", _updates),
     ],
     "soak": [
         C("bag", "bag", _name_only),

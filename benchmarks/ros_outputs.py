@@ -34,6 +34,14 @@ marking the path changed, every 5th correcting the keyframe poses as a mapping s
 published at most every ``--path-period`` s (``path_new_publication_ms``: one publication of the whole
 path). Keys ending in ``_ratio`` are new / old.
 
+**Map updates** (``benchmarks/map_updates.py``, unless ``--no-updates``): the engine run offline on the
+``make demo`` scene and on the TUM fr1_xyz frames (``--updates-frames``: the first this many of each, 0:
+all), each mapping step's ``map_update`` built whole in float32 (old) and as the ``live`` preset sends it
+(new: changed rows, float16 tables). ``map_update_mb_per_s_old`` / ``_new`` (demo) and
+``map_update_tum_mb_per_s_old`` / ``_new``: MB per second of recording; ``map_update_pose_diff_cm_max``
+(and ``_tum_``): how far the poses tracked on the map the new updates build are from those tracked on
+the mapper's own map.
+
 Every run ends with ``record`` (``benchmarks/common.py``): ``benchmarks/results/ros_outputs-<date>.json``,
 and the same to ``--json FILE``.
 
@@ -54,6 +62,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from common import load_figures, median_ms, record
+from map_updates import figures_for as map_update_figures
 from ros_outputs_reference import load as load_reference
 
 from neb_slam_core.config import MeshConfig, SlamConfig
@@ -178,6 +187,8 @@ def main() -> None:
     p.add_argument("--fps", type=float, default=10.0, help="frame rate of the timed frames (simulated clock)")
     p.add_argument("--path-period", type=float, default=1.0, help="the new path's path_period_s")
     p.add_argument("--repeats", type=int, default=1, help="timed runs of each case (the median is kept)")
+    p.add_argument("--updates-frames", type=int, default=0, help="frames of each map-update source (0: all)")
+    p.add_argument("--no-updates", action="store_true", help="leave the map-update figures out")
     p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
     args = p.parse_args()
     os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 200))
@@ -313,6 +324,17 @@ def main() -> None:
     old_node.destroy_node()
     new_node.destroy_node()
     rclpy.try_shutdown()
+    if not args.no_updates:
+        for source, prefix in (("demo", "map_update_"), ("tum", "map_update_tum_")):
+            # new: as the live preset sends them (float16 tables, changed rows)
+            u = map_update_figures(source, args.updates_frames, ["live.update_float16=true"], 5, progress=True)
+            for key in ("mb_per_s_old", "mb_per_s_new", "pose_diff_cm_median", "pose_diff_cm_max", "updates", "frames"):
+                figures[prefix + key] = u[key]
+            figures[prefix + "ratio"] = u["mb_per_s_ratio"]
+            print(
+                f"  {prefix}mb_per_s old {u['mb_per_s_old']:.3f} new {u['mb_per_s_new']:.3f} (x"
+                f"{u['mb_per_s_ratio']:.3f}); tracked poses within {u['pose_diff_cm_max']:.4f} cm"
+            )
     record("ros_outputs", figures, args.json)
 
 

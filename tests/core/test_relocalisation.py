@@ -109,12 +109,12 @@ def test_a_kidnapped_camera_relocalises_within_ten_frames(kidnapped):
 
 @pytest.fixture(scope="module")
 def tum_interrupted(tum_dir, tmp_path_factory) -> dict:
-    """``benchmarks/relocalisation.py`` on the first 241 TUM fr1_xyz frames, every other one (15 Hz),
-    config ``live`` in lockstep: uninterrupted, with frames 121-180 (two seconds) left out, and with them
+    """``benchmarks/relocalisation.py`` on the first 201 TUM fr1_xyz frames, every other one (15 Hz),
+    config ``live`` in lockstep: uninterrupted, with frames 101-160 (two seconds) left out, and with them
     black (30 frames fed of each)."""
     out = tmp_path_factory.mktemp("relocalisation")
     cmd = [sys.executable, str(REPO / "benchmarks" / "relocalisation.py"), "--source", str(tum_dir)]
-    cmd += ["--config", "live", "--frames", "241", "--stride", "2", "--gap", "121", "180"]
+    cmd += ["--config", "live", "--frames", "201", "--stride", "2", "--gap", "101", "160"]
     cmd += ["--no-progress", "--results-dir", str(out), "--json", str(out / "figures.json")]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -426,6 +426,10 @@ class LiveConfig:
     (:func:`neb_slam_core.engine_process.lower_thread_priority`). ``mapping_process``: mapping and loop
     closure run in a child process (:class:`neb_slam_core.live_mapping.ProcessMapping`), so that they do not
     take turns with tracking on one Python interpreter; False keeps them in threads of the tracker's process.
+    ``update_tolerance`` and ``update_float16``: how the mapping side's map updates carry the tables to the
+    tracker (:mod:`neb_slam_core.scene.map_update`): a changed table row goes once one of its values is
+    more than ``update_tolerance`` off the tracker's copy, as float16 with ``update_float16`` (0 and
+    False: every change, exact).
     """
 
     first_iterations: int = 30
@@ -435,6 +439,8 @@ class LiveConfig:
     max_turn_deg: float = 0.0
     background_nice: int = 0
     mapping_process: bool = True
+    update_tolerance: float = 0.0
+    update_float16: bool = False
 
 
 @dataclass(frozen=True)

@@ -484,6 +484,8 @@ RULES: dict[str, Any] = {
     "live.max_turn_deg": _NON_NEGATIVE,
     "live.background_nice": _Int(0, 19),
     "live.mapping_process": _Bool(),
+    "live.update_tolerance": _NON_NEGATIVE,
+    "live.update_float16": _Bool(),
 }
 
 

@@ -315,7 +315,10 @@ class MapperNode(NebNode):
             stamps = np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64)
             poses = kfs.poses() if len(kfs) else np.zeros((0, 4, 4))
             ack = int(stamps[-1]) if len(stamps) else -1
-            update = map_update.capture(self.block_map, range(len(self.block_map)), 0, ack, stamps, poses)
+            # whole: a tracker that starts over gets every block; the mirror then holds what it has
+            update = map_update.capture(
+                self.block_map, range(len(self.block_map)), 0, ack, stamps, poses, mirror=self.side.mirror, whole=True
+            )
         # every offer carries the same version: a tracker that has it already ignores the next
         self._publish_update(update, renumber=False)
         return f"{len(self.block_map)} blocks and {len(stamps)} keyframe poses sent"

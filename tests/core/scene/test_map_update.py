@@ -48,13 +48,27 @@ def test_layout_sizes_are_the_documented_ones():
     table_numel = m.blocks[0].grid.table.numel()
     n_decoder = sum(p.numel() for p in m.decoders.parameters())
     record = 125  # 10^3 voxels, 8 a byte
-    assert len(data) == 68 + 2 * (16 + 4 * table_numel + record) + 4 * n_decoder + 2 * 8 + 2 * 128
+    assert len(data) == 76 + 2 * (16 + 4 * table_numel + record) + 4 * n_decoder + 2 * 8 + 2 * 128
     assert data[:4] == b"NEBU"
-    assert struct.unpack_from("<HHQq", data, 4) == (3, 0, 5, 123)
-    assert struct.unpack_from("<IIIIIqIQi", data, 24) == (2, table_numel, n_decoder, 2, 68, 77, record, 0, -1)
+    assert struct.unpack_from("<HHQq", data, 4) == (4, 0, 5, 123)
+    width = m.blocks[0].grid.table.shape[-1]
+    assert struct.unpack_from("<IIIIIqIQiIHH", data, 24) == (
+        2,
+        table_numel,
+        n_decoder,
+        2,
+        76,
+        77,
+        record,
+        0,
+        -1,
+        0,
+        width,
+        4,
+    )
     # the first block record is block 0 (ids are sorted), its centre follows its id, its record its table
-    assert struct.unpack_from("<I3f", data, 68) == (0, 0.0, 0.0, 0.0)
-    first = data[68 + 16 + 4 * table_numel :][:record]
+    assert struct.unpack_from("<I3f", data, 76) == (0, 0.0, 0.0, 0.0)
+    first = data[76 + 16 + 4 * table_numel :][:record]
     bits = np.unpackbits(np.frombuffer(first, np.uint8), bitorder="little").astype(bool)
     assert np.array_equal(bits, m.blocks[0].observed.numpy().reshape(-1))
     assert map_update.decode(data).loop_stamp_ns == 77
@@ -67,7 +81,7 @@ def test_a_format_1_update_still_reads(header_bytes):
     receiver's own record as it was)."""
     m = trained(observed_voxel_m=0.0)  # no record: the blocks are laid out as format 1 lays them out
     data = map_update.encode(map_update.capture(m, [1], 3, 9, [5], np.eye(4)[None], loop_stamp_ns=123))
-    old = bytearray(data[:header_bytes] + data[68:])
+    old = bytearray(data[:header_bytes] + data[76:])
     struct.pack_into("<H", old, 4, 1)
     struct.pack_into("<I", old, 40, header_bytes)
     u = map_update.decode(bytes(old))
@@ -88,7 +102,7 @@ def test_the_senders_epoch_and_durable_keyframes_round_trip_and_a_format_2_updat
     data = map_update.encode(update)
     u = map_update.decode(data)
     assert (u.epoch, u.durable_keyframes, u.version) == (2**63 + 5, 17, 4)
-    old = bytearray(data[:56] + data[68:])  # format 2: the header ends after observed_bytes
+    old = bytearray(data[:56] + data[76:])  # format 2: the header ends after observed_bytes
     struct.pack_into("<H", old, 4, 2)
     struct.pack_into("<I", old, 40, 56)
     u2 = map_update.decode(bytes(old))
@@ -172,3 +186,71 @@ def test_bad_updates_are_refused_with_what_is_wrong():
     coarser = make_map(observed_voxel_m=1.0)
     with pytest.raises(MapUpdateError, match="125-byte observed-space record.*125 voxels"):
         map_update.apply(map_update.decode(data), coarser)
+
+
+def _rows(block) -> torch.Tensor:
+    return block.grid.table.view(-1, block.grid.table.shape[-1])
+
+
+def test_after_a_blocks_first_update_only_its_changed_rows_go_and_the_receiver_matches_exactly():
+    sender, receiver = trained(), make_map(seed=99)
+    mirror = map_update.ReceiverMirror()
+    first = map_update.capture(sender, [0, 1, 2], 1, 0, [], np.zeros((0, 4, 4)), mirror=mirror)
+    assert all(b.rows is None for b in first.blocks)  # a block's first update is whole
+    map_update.apply(map_update.decode(map_update.encode(first)), receiver)
+    with torch.no_grad():
+        _rows(sender.blocks[1])[[3, 7]] += 0.25
+    update = map_update.capture(sender, [0, 1], 2, 0, [], np.zeros((0, 4, 4)), mirror=mirror)
+    data = map_update.encode(update)
+    width = sender.blocks[0].grid.table.shape[-1]
+    record = 125
+    n_decoder = sum(p.numel() for p in sender.decoders.parameters())
+    # block 0 unchanged: no rows; block 1: rows 3 and 7, each an index and its values
+    assert len(data) == 76 + 2 * (16 + 4 + record) + 2 * (4 + 4 * width) + 4 * n_decoder
+    assert struct.unpack_from("<IHH", data, 68) == (2, width, 4)
+    decoded = map_update.decode(data)
+    assert [b.rows.tolist() for b in decoded.blocks] == [[], [3, 7]]
+    map_update.apply(decoded, receiver)
+    for a, b in zip(receiver.blocks, sender.blocks):
+        assert torch.equal(a.grid.table, b.grid.table) and torch.equal(a.observed, b.observed)
+
+
+def test_float16_and_a_tolerance_keep_every_receiver_value_within_their_bound():
+    """float16 rounds a value v by at most |v| 2^-11 (half its 10-bit mantissa's step; the tables here hold
+    normal numbers); a row whose values moved by at most the tolerance stays as the receiver has it."""
+    tol = 1e-3
+    sender, receiver = trained(), make_map(seed=99)
+    mirror = map_update.ReceiverMirror(tolerance=tol, float16=True)
+    map_update.apply(
+        map_update.decode(map_update.encode(map_update.capture(sender, [0], 1, 0, [], [], mirror=mirror))), receiver
+    )
+    table = _rows(sender.blocks[0])
+    with torch.no_grad():
+        table += 0.5 * tol  # every row moves, by half the tolerance
+        table[5] += 0.01  # one row by more
+    update = map_update.capture(sender, [0], 2, 0, [], [], mirror=mirror)
+    data = map_update.encode(update)
+    assert update.value_bytes == 2 and update.blocks[0].rows.tolist() == [5]
+    map_update.apply(map_update.decode(data), receiver)
+    got, want = _rows(receiver.blocks[0]), table
+    assert torch.equal(got[5], want[5].half().float())
+    bound = tol + want.abs() * 2.0**-11
+    assert bool(((got - want).abs() <= bound).all())
+    # measured against what the receiver has (row 5 rounded to float16), nothing is left to send
+    assert map_update.capture(sender, [0], 3, 0, [], [], mirror=mirror).blocks[0].rows.tolist() == []
+
+
+def test_a_format_3_update_still_reads_and_a_partial_new_block_is_refused():
+    m = trained()
+    data = map_update.encode(map_update.capture(m, [0], 4, 9, [5], np.eye(4)[None]))
+    old = bytearray(data[:68] + data[76:])  # format 3: no row fields, float32 tables
+    struct.pack_into("<H", old, 4, 3)
+    struct.pack_into("<I", old, 40, 68)
+    u = map_update.decode(bytes(old))
+    assert (u.version, u.block_ids, u.value_bytes, u.blocks[0].rows) == (4, [0], 4, None)
+    np.testing.assert_array_equal(u.blocks[0].table, map_update.decode(data).blocks[0].table)
+    mirror = map_update.ReceiverMirror()
+    map_update.capture(m, [0], 1, 0, [], [], mirror=mirror)
+    partial = map_update.decode(map_update.encode(map_update.capture(m, [0], 2, 0, [], [], mirror=mirror)))
+    with pytest.raises(MapUpdateError, match="new block 0 in part"):
+        map_update.apply(partial, make_map())

@@ -2,21 +2,27 @@
 
 The mapper sends it (ROS topic ``map_update``, std_msgs/UInt8MultiArray) to trackers that hold a copy of
 the map: the hash tables and observed-space records of the blocks it changed, all decoder parameters,
-and the current poses of all keyframes (mapping refines them). Applying every update in order reproduces
-the mapper's map exactly (float32 tables and decoders, float64 poses: no rounding on the way); a
-receiver's observed-space record becomes the union of its own and the mapper's.
+and the current poses of all keyframes (mapping refines them). A receiver's observed-space record
+becomes the union of its own and the mapper's.
+
+A block goes whole (its first time, or when most of it changed) or as the table rows that changed since
+the receivers last got them: the sender keeps what the receivers hold (:class:`ReceiverMirror`) and
+sends a row once one of its values is more than ``tolerance`` off it. Table values go as float32, or as
+float16 when the sender asks for it (decoders and poses always at full precision). Applying every update
+in order gives each receiver the mirror's tables exactly: with tolerance 0 and float32 the mapper's map
+itself, otherwise every table value within ``tolerance`` plus float16's rounding of the mapper's.
 
 A mapper that checkpoints says which of its keyframes a restart would keep (``durable_keyframes``), and
 every start of a mapper has its own ``epoch``: a receiver that sees a new epoch knows the sender restarted
 (from a checkpoint, with the keyframes the update's poses list), starts counting versions anew and hands it
 the keyframes it lacks.
 
-Binary layout, version 3, little-endian, no padding::
+Binary layout, version 4, little-endian, no padding::
 
-    header (68 bytes)
+    header (76 bytes)
       char[4]  magic            b"NEBU"
-      uint16   format           3 (1: without observed_bytes, 2: without epoch and durable_keyframes;
-                                both still read)
+      uint16   format           4 (1: without observed_bytes, 2: without epoch and durable_keyframes,
+                                3: without the row fields, float32 tables only; all still read)
       uint16   reserved         0
       uint64   version          update counter of the sender, 1, 2, 3, ... (receivers drop old ones)
       int64    ack_stamp_ns     stamp of the newest keyframe the map has integrated (-1: none)
@@ -31,19 +37,29 @@ Binary layout, version 3, little-endian, no padding::
       uint64   epoch            the sender's start: a new value after each restart (0: not told); format 3
       int32    durable_keyframes  keyframes 0..n-1 are in the sender's last checkpoint (-1: it writes
                                 none); format 3
-    B times
+      uint32   n_partial        P, blocks sent as changed rows; format 4
+      uint16   row_width        F, table values per row (the features of one entry); format 4
+      uint16   value_bytes      4: table values are float32, 2: float16; format 4
+    B times (whole blocks)
       uint32   block_id
       float32  centre_world[3]  metres
-      float32  table[table_numel]   the block's hash table, row-major (entries, features)
+      value    table[table_numel]   the block's hash table, row-major (entries, features)
       uint8    observed[observed_bytes]  the block's (V, V, V) record of observed voxels
                                 (:class:`~.block.NeuralBlock`), flattened row-major, 8 voxels a byte,
                                 least significant bit first
+    P times (blocks sent as changed rows; format 4)
+      uint32   block_id
+      float32  centre_world[3]
+      uint32   n_rows           R
+      uint32   rows[R]          row indices, increasing
+      value    values[R][F]     those rows of the table
+      uint8    observed[observed_bytes]
     float32  decoders[n_decoder]    parameters in ``Decoders.parameters()`` order, each row-major
     int64    keyframe_stamps_ns[K]
     float64  keyframe_poses[K][4][4]   T_world_cam of keyframes 0..K-1, row-major
 
 Block ids are dense (0, 1, 2, ...): a receiver that does not have block ``id`` yet creates it, and it
-must then have every lower id already.
+must then have every lower id already; a block's first update is whole.
 """
 
 from __future__ import annotations
@@ -58,13 +74,18 @@ from ..errors import NebSlamError
 from .block_map import BlockMap
 
 MAGIC = b"NEBU"
-FORMAT_VERSION = 3
-READABLE_FORMATS = (1, 2, 3)
+FORMAT_VERSION = 4
+READABLE_FORMATS = (1, 2, 3, 4)
 _HEADER = struct.Struct("<4sHHQqIIIII")  # the first 44 bytes; header_bytes says where the blocks start
 _HEADER_EXTRA = struct.Struct("<qI")  # fields appended since: loop_stamp_ns, observed_bytes (format 2)
 _HEADER_RESTART = struct.Struct("<Qi")  # epoch, durable_keyframes (format 3)
+_HEADER_ROWS = struct.Struct("<IHH")  # n_partial, row_width, value_bytes (format 4)
+_HEADER_SIZE = _HEADER.size + _HEADER_EXTRA.size + _HEADER_RESTART.size + _HEADER_ROWS.size
 _LOOP_STAMP = struct.Struct("<q")
 _BLOCK_HEAD = struct.Struct("<I3f")
+_N_ROWS = struct.Struct("<I")
+_VALUE_TYPES = {4: "<f4", 2: "<f2"}
+FLOAT16_MAX = float(np.finfo(np.float16).max)
 
 
 class MapUpdateError(NebSlamError):
@@ -73,13 +94,15 @@ class MapUpdateError(NebSlamError):
 
 @dataclass
 class BlockState:
-    """One block's identity and parameters: ``table`` is float32 ``(table_numel,)``; ``observed`` its
+    """One block's identity and parameters: ``table`` is the float32 table ``(table_numel,)``, or with
+    ``rows`` (increasing row indices) those rows only, ``(len(rows) * row_width,)``; ``observed`` its
     observed-space record packed 8 voxels a byte (:func:`pack_observed`), empty without one."""
 
     block_id: int
     centre_world: np.ndarray
     table: np.ndarray
     observed: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
+    rows: np.ndarray | None = None
 
 
 def pack_observed(observed: torch.Tensor) -> np.ndarray:
@@ -100,10 +123,63 @@ class MapUpdate:
     loop_stamp_ns: int = -1
     epoch: int = 0
     durable_keyframes: int = -1
+    row_width: int = 1
+    value_bytes: int = 4
 
     @property
     def block_ids(self) -> list[int]:
         return [b.block_id for b in self.blocks]
+
+
+class ReceiverMirror:
+    """The sender's copy of the tables its receivers hold, as its updates left them: what decides which
+    rows an update carries (module docstring). ``tolerance``: a row goes once one of its values is more
+    than this off the receivers' copy (0: every change); ``float16``: table values go as float16 (an
+    update whose tables hold a value beyond float16's range goes as float32). A row's change is that of
+    the values it would be sent as, so with float16 a change within the rounding sends nothing."""
+
+    def __init__(self, tolerance: float = 0.0, float16: bool = False):
+        if tolerance < 0:
+            raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+        self.tolerance = tolerance
+        self.float16 = float16
+        self._tables: dict[int, np.ndarray] = {}  # block id -> (rows, F) float32, as the receivers have it
+
+    def blocks(self, block_map: BlockMap, block_ids, whole: bool = False) -> tuple[list[BlockState], int]:
+        """The states of blocks ``block_ids`` for the next update, and its value bytes (4 or 2); the
+        mirror then holds what the receivers will have. ``whole``: every block whole (a receiver that
+        starts over)."""
+        ids = sorted(int(b) for b in block_ids)
+        tables = [_table_rows(block_map.blocks[i]) for i in ids]
+        fits = all(float(np.abs(t).max(initial=0.0)) <= FLOAT16_MAX for t in tables)
+        value_bytes = 2 if self.float16 and fits else 4
+        states = []
+        for i, table in zip(ids, tables):
+            block = block_map.blocks[i]
+            sent = table.astype(_VALUE_TYPES[value_bytes]).astype(np.float32)  # what the receivers get
+            held = self._tables.get(i)
+            rows = None
+            if held is not None and not whole and held.shape == table.shape:
+                # what would go against what is there: a value float16 rounds to the held one has not moved
+                changed = np.flatnonzero(np.abs(sent - held).max(axis=1) > self.tolerance).astype(np.uint32)
+                # an index costs 4 bytes: past about half the rows the whole table is smaller
+                if changed.size * (4 + table.shape[1] * value_bytes) < table.size * value_bytes:
+                    rows = changed
+            if rows is None:
+                self._tables[i] = sent
+                values = sent.reshape(-1)
+            else:
+                held[rows] = sent[rows]
+                values = sent[rows].reshape(-1)
+            centre = block.centre.detach().cpu().numpy().astype(np.float32)
+            states.append(BlockState(i, centre, values, pack_observed(block.observed), rows))
+        return states, value_bytes
+
+
+def _table_rows(block) -> np.ndarray:
+    """A block's table as float32 ``(rows, row_width)``, a copy."""
+    table = block.grid.table.detach().cpu()
+    return table.reshape(-1, table.shape[-1]).numpy().astype(np.float32, copy=True)
 
 
 def capture(
@@ -114,36 +190,38 @@ def capture(
     keyframe_stamps_ns,
     keyframe_poses,
     loop_stamp_ns: int = -1,
+    mirror: ReceiverMirror | None = None,
+    whole: bool = False,
 ) -> MapUpdate:
     """The update carrying blocks ``block_ids`` of ``block_map``, its decoders and the keyframe poses
     ``(K, 4, 4)`` with their stamps ``(K,)``, as copies (another thread or process may apply or encode it
-    while the map moves on); ``loop_stamp_ns`` names the newest loop correction in it."""
+    while the map moves on); ``loop_stamp_ns`` names the newest loop correction in it. With ``mirror``
+    the blocks go as it decides (changed rows, float16), ``whole`` all of them whole; without it whole
+    and exact."""
     stamps = np.array(keyframe_stamps_ns, dtype=np.int64).reshape(-1)
     poses = np.array(keyframe_poses, dtype=np.float64).reshape(-1, 4, 4)
     if len(stamps) != len(poses):
         raise ValueError(f"{len(stamps)} keyframe stamps for {len(poses)} poses")
-    blocks = []
-    for i in sorted(int(b) for b in block_ids):
-        block = block_map.blocks[i]
-        blocks.append(
-            BlockState(
-                i,
-                block.centre.detach().cpu().numpy().astype(np.float32),
-                block.grid.table.detach().cpu().reshape(-1).numpy().copy(),
-                pack_observed(block.observed),
-            )
-        )
+    blocks, value_bytes = (mirror or ReceiverMirror()).blocks(block_map, block_ids, whole=whole or mirror is None)
+    row_width = int(block_map.blocks[0].grid.table.shape[-1]) if len(block_map) else 1
     decoders = torch.nn.utils.parameters_to_vector(block_map.decoders.parameters()).detach().cpu().numpy().copy()
-    return MapUpdate(version, ack_stamp_ns, blocks, decoders, stamps, poses, loop_stamp_ns)
+    update = MapUpdate(version, ack_stamp_ns, blocks, decoders, stamps, poses, loop_stamp_ns)
+    update.row_width, update.value_bytes = row_width, value_bytes
+    return update
 
 
 def encode(update: MapUpdate) -> bytes:
     """``update`` in the binary layout of the module docstring."""
-    table_numel = update.blocks[0].table.size if update.blocks else 0
+    whole = sorted((b for b in update.blocks if b.rows is None), key=lambda b: b.block_id)
+    partial = sorted((b for b in update.blocks if b.rows is not None), key=lambda b: b.block_id)
+    table_numel = whole[0].table.size if whole else 0
     observed_bytes = update.blocks[0].observed.size if update.blocks else 0
     for b in update.blocks:
-        if b.table.size != table_numel or b.observed.size != observed_bytes:
+        if (b.rows is None and b.table.size != table_numel) or b.observed.size != observed_bytes:
             raise ValueError(f"block {b.block_id}'s table or record differs in size from the update's first block")
+        if b.rows is not None and b.table.size != len(b.rows) * update.row_width:
+            raise ValueError(f"block {b.block_id} has {b.table.size} values for {len(b.rows)} rows")
+    value = _VALUE_TYPES[update.value_bytes]
     stamps = np.ascontiguousarray(update.keyframe_stamps_ns, dtype="<i8").reshape(-1)
     poses = np.ascontiguousarray(update.keyframe_poses, dtype="<f8").reshape(-1, 4, 4)
     parts = [
@@ -153,18 +231,22 @@ def encode(update: MapUpdate) -> bytes:
             0,
             update.version,
             update.ack_stamp_ns,
-            len(update.blocks),
+            len(whole),
             table_numel,
             update.decoders.size,
             len(stamps),
-            _HEADER.size + _HEADER_EXTRA.size + _HEADER_RESTART.size,
+            _HEADER_SIZE,
         ),
         _HEADER_EXTRA.pack(update.loop_stamp_ns, observed_bytes),
         _HEADER_RESTART.pack(update.epoch, update.durable_keyframes),
+        _HEADER_ROWS.pack(len(partial), update.row_width, update.value_bytes),
     ]
-    for b in sorted(update.blocks, key=lambda b: b.block_id):
+    for b in whole + partial:
         parts.append(_BLOCK_HEAD.pack(b.block_id, *map(float, b.centre_world)))
-        parts.append(np.asarray(b.table).astype("<f4", copy=False).tobytes())
+        if b.rows is not None:
+            parts.append(_N_ROWS.pack(len(b.rows)))
+            parts.append(np.asarray(b.rows).astype("<u4", copy=False).tobytes())
+        parts.append(np.asarray(b.table).astype(value, copy=False).tobytes())
         parts.append(np.asarray(b.observed, dtype=np.uint8).tobytes())
     parts += [np.asarray(update.decoders).astype("<f4", copy=False).tobytes(), stamps.tobytes(), poses.tobytes()]
     return b"".join(parts)
@@ -183,37 +265,66 @@ def decode(data) -> MapUpdate:
     if header_bytes < _HEADER.size or header_bytes > len(buf):
         raise MapUpdateError(f"map update header_bytes {header_bytes} is outside {_HEADER.size}..{len(buf)}")
     loop_stamp, observed_bytes, epoch, durable = -1, 0, 0, -1
+    n_partial, row_width, value_bytes = 0, 1, 4
     if fmt >= 2 and header_bytes >= _HEADER.size + _HEADER_EXTRA.size:
         loop_stamp, observed_bytes = _HEADER_EXTRA.unpack_from(buf, _HEADER.size)
         if fmt >= 3 and header_bytes >= _HEADER.size + _HEADER_EXTRA.size + _HEADER_RESTART.size:
             epoch, durable = _HEADER_RESTART.unpack_from(buf, _HEADER.size + _HEADER_EXTRA.size)
+        if fmt >= 4 and header_bytes >= _HEADER_SIZE:
+            n_partial, row_width, value_bytes = _HEADER_ROWS.unpack_from(buf, _HEADER_SIZE - _HEADER_ROWS.size)
     elif header_bytes >= _HEADER.size + _LOOP_STAMP.size:
         (loop_stamp,) = _LOOP_STAMP.unpack_from(buf, _HEADER.size)
-    block_bytes = _BLOCK_HEAD.size + 4 * table_numel + observed_bytes
-    expected = header_bytes + n_blocks * block_bytes + 4 * n_decoder + 8 * n_kf + 128 * n_kf
-    if len(buf) != expected:
-        raise MapUpdateError(
-            f"map update of {len(buf)} bytes, its header announces {expected} "
-            f"({n_blocks} blocks of {table_numel} values and {observed_bytes} record bytes, "
-            f"{n_decoder} decoder values, "
-            f"{n_kf} keyframes)"
+    if value_bytes not in _VALUE_TYPES or row_width == 0:
+        raise MapUpdateError(f"map update value_bytes {value_bytes} / row_width {row_width}: expected 4 or 2 / > 0")
+    value = _VALUE_TYPES[value_bytes]
+
+    def short(what: str, need: int, at: int) -> MapUpdateError:
+        return MapUpdateError(
+            f"map update of {len(buf)} bytes ends inside {what} (needs {need} bytes at {at}; header: "
+            f"{n_blocks} whole and {n_partial} partial blocks of {table_numel} values and {observed_bytes} "
+            f"record bytes, {n_decoder} decoder values, {n_kf} keyframes)"
         )
+
     offset = header_bytes
     blocks = []
-    for _ in range(n_blocks):
+    for k in range(n_blocks + n_partial):
+        if offset + _BLOCK_HEAD.size > len(buf):
+            raise short(f"block {k}'s head", _BLOCK_HEAD.size, offset)
         block_id, cx, cy, cz = _BLOCK_HEAD.unpack_from(buf, offset)
         offset += _BLOCK_HEAD.size
-        table = np.frombuffer(buf, "<f4", table_numel, offset)
-        offset += 4 * table_numel
+        rows = None
+        n_values = table_numel
+        if k >= n_blocks:  # sent as changed rows
+            if offset + _N_ROWS.size > len(buf):
+                raise short(f"block {block_id}'s row count", _N_ROWS.size, offset)
+            (n_rows,) = _N_ROWS.unpack_from(buf, offset)
+            offset += _N_ROWS.size
+            if offset + 4 * n_rows > len(buf):
+                raise short(f"block {block_id}'s rows", 4 * n_rows, offset)
+            rows = np.frombuffer(buf, "<u4", n_rows, offset)
+            offset += 4 * n_rows
+            n_values = n_rows * row_width
+        need = value_bytes * n_values + observed_bytes
+        if offset + need > len(buf):
+            raise short(f"block {block_id}'s table", need, offset)
+        table = np.frombuffer(buf, value, n_values, offset)
+        table = table if value_bytes == 4 else table.astype(np.float32)
+        offset += value_bytes * n_values
         observed = np.frombuffer(buf, np.uint8, observed_bytes, offset)
         offset += observed_bytes
-        blocks.append(BlockState(block_id, np.array([cx, cy, cz], dtype=np.float32), table, observed))
+        blocks.append(BlockState(block_id, np.array([cx, cy, cz], dtype=np.float32), table, observed, rows))
+    if len(buf) != offset + 4 * n_decoder + 136 * n_kf:
+        raise MapUpdateError(
+            f"map update of {len(buf)} bytes, its header announces {offset + 4 * n_decoder + 136 * n_kf} "
+            f"({n_blocks} whole and {n_partial} partial blocks of {table_numel} values and {observed_bytes} "
+            f"record bytes, {n_decoder} decoder values, {n_kf} keyframes)"
+        )
     decoders = np.frombuffer(buf, "<f4", n_decoder, offset)
     offset += 4 * n_decoder
     stamps = np.frombuffer(buf, "<i8", n_kf, offset)
     offset += 8 * n_kf
     poses = np.frombuffer(buf, "<f8", 16 * n_kf, offset).reshape(n_kf, 4, 4)
-    return MapUpdate(version, ack, blocks, decoders, stamps, poses, loop_stamp, epoch, durable)
+    return MapUpdate(version, ack, blocks, decoders, stamps, poses, loop_stamp, epoch, durable, row_width, value_bytes)
 
 
 def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:
@@ -242,13 +353,30 @@ def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:
                 f"map update moves block {state.block_id} from {block.centre.tolist()} to "
                 f"{state.centre_world.tolist()}: the maps diverged"
             )
-        if state.table.size != block.grid.table.numel():
-            raise MapUpdateError(
-                f"map update block {state.block_id} has {state.table.size} table values, this "
-                f"map's blocks have {block.grid.table.numel()} (different grid config?)"
-            )
-        with torch.no_grad():
-            block.grid.table.copy_(torch.from_numpy(state.table.copy()).view_as(block.grid.table))
+        table = block.grid.table
+        if state.rows is None:
+            if state.table.size != table.numel():
+                raise MapUpdateError(
+                    f"map update block {state.block_id} has {state.table.size} table values, this "
+                    f"map's blocks have {table.numel()} (different grid config?)"
+                )
+            with torch.no_grad():
+                table.copy_(torch.from_numpy(state.table.copy()).view_as(table))
+        else:
+            width = table.shape[-1]
+            n_rows = table.numel() // width
+            if state.rows.size and (update.row_width != width or int(state.rows.max()) >= n_rows):
+                raise MapUpdateError(
+                    f"map update block {state.block_id} has rows of {update.row_width} values up to row "
+                    f"{int(state.rows.max())}, this map's tables have {n_rows} rows of {width} (different "
+                    "grid config?)"
+                )
+            if state.block_id in created:
+                raise MapUpdateError(f"map update sends new block {state.block_id} in part (an update was lost)")
+            rows = torch.from_numpy(state.rows.astype(np.int64))
+            values = torch.from_numpy(state.table.reshape(-1, width).copy())
+            with torch.no_grad():
+                table.view(-1, width)[rows] = values
         if state.observed.size:
             n = block.observed.numel()
             if state.observed.size != (n + 7) // 8:

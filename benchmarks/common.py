@@ -19,6 +19,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 REPO = Path(__file__).resolve().parents[1]
+# the ROS package is built by colcon, not installed into the venv: the scripts import it from the source
+# tree, as the tests and the node processes they start do
+sys.path.insert(0, str(REPO / "src" / "neb_slam_ros"))
 TUM = Path(os.environ.get("NEB_SLAM_SHARED_DATA", REPO.parent / "shared" / "data")) / "tum_fr1_xyz_300"
 #: where every benchmark run leaves its stamped figures
 RESULTS = REPO / "benchmarks" / "results"

@@ -44,9 +44,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src" / "neb_slam_ros"))
-
 from common import REPO, TUM, record
 
 from neb_slam_core.config_io import load_config

@@ -143,7 +143,7 @@ class ReceiverMirror:
             raise ValueError(f"tolerance must be >= 0, got {tolerance}")
         self.tolerance = tolerance
         self.float16 = float16
-        self._tables: dict[int, np.ndarray] = {}  # block id -> (rows, F) float32, as the receivers have it
+        self._tables: dict[int, np.ndarray] = {}  # block id -> (rows, F), as the receivers have it
 
     def blocks(self, block_map: BlockMap, block_ids, whole: bool = False) -> tuple[list[BlockState], int]:
         """The states of blocks ``block_ids`` for the next update, and its value bytes (4 or 2); the
@@ -156,21 +156,22 @@ class ReceiverMirror:
         states = []
         for i, table in zip(ids, tables):
             block = block_map.blocks[i]
-            sent = table.astype(_VALUE_TYPES[value_bytes]).astype(np.float32)  # what the receivers get
+            wire = table.astype(_VALUE_TYPES[value_bytes])  # what the receivers get
             held = self._tables.get(i)
             rows = None
-            if held is not None and not whole and held.shape == table.shape:
+            if held is not None and not whole and held.shape == wire.shape and held.dtype == wire.dtype:
                 # what would go against what is there: a value float16 rounds to the held one has not moved
-                changed = np.flatnonzero(np.abs(sent - held).max(axis=1) > self.tolerance).astype(np.uint32)
+                moved = np.abs(wire.astype(np.float32) - held.astype(np.float32)).max(axis=1)
+                changed = np.flatnonzero(moved > self.tolerance).astype(np.uint32)
                 # an index costs 4 bytes: past about half the rows the whole table is smaller
                 if changed.size * (4 + table.shape[1] * value_bytes) < table.size * value_bytes:
                     rows = changed
             if rows is None:
-                self._tables[i] = sent
-                values = sent.reshape(-1)
+                self._tables[i] = wire  # kept as sent: float16 halves the mirror too
+                values = wire.reshape(-1).astype(np.float32)
             else:
-                held[rows] = sent[rows]
-                values = sent[rows].reshape(-1)
+                held[rows] = wire[rows]
+                values = wire[rows].reshape(-1).astype(np.float32)
             centre = block.centre.detach().cpu().numpy().astype(np.float32)
             states.append(BlockState(i, centre, values, pack_observed(block.observed), rows))
         return states, value_bytes

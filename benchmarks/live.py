@@ -112,6 +112,8 @@ def figures_of(run_dir: Path, metrics: dict, live: bool) -> dict:
         "mapping_lag_max": metrics.get("mapping_lag_max"),
         "lag_trend": _lag_trend(metrics.get("mapping_lag_history", [])),
         "loops_applied": metrics.get("n_loops_applied"),
+        # the separate nodes: what the mapper published on map_update, per second of the replay
+        "map_update_mb_per_s": metrics.get("map_update_mb_per_s"),
         "trajectory": str(run_dir / "trajectory.txt"),
     }
     out.update(_timing_figures(run_dir))

@@ -98,8 +98,7 @@ def main() -> None:
     if not any(i > gap[-1] for i in by_index):
         raise SystemExit(f"--gap {args.gap[0]} {args.gap[1]} leaves no frame after it in the first {n} frames")
     cfg = load_config(args.config, ["tracking.relocalise=true", *args.set])
-    with_gt = [f for f in frames if f.T_world_cam is not None]
-    gt = Trajectory(np.array([f.stamp_ns for f in with_gt]), np.stack([f.T_world_cam for f in with_gt]))
+    gt = Trajectory.of_frames(frames)
     progress = not args.no_progress
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
@@ -117,10 +116,10 @@ def main() -> None:
             "tracking_failures": sum(not r.tracking_ok for r in ref_results[1:]),
         },
     }
+    before = sum(i < gap.start for i in by_index)  # frames fed before the gap
     for kind in ("gap", "black"):
         fed = interrupted(by_index, gap, kind)
         slam, results, _ = run(fed, cfg, kind, progress)
-        before = sum(i < gap.start for i in by_index)  # frames fed before the gap
         back = before + (sum(i in gap for i in by_index) if kind == "black" else 0)  # where the view returns
         after = results[back:]
         recovered = next((k for k, r in enumerate(after) if r.tracking_ok), None)

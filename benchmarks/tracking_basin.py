@@ -85,8 +85,7 @@ def run_stride(frames: list, stride: int, overrides: list[str]) -> dict:
         if r.frame_index > 0:
             failures += int(not r.tracking_ok)
             track_ms.append(r.timings.track_ms)
-    with_gt = [f for f in chosen if f.T_world_cam is not None]
-    gt = Trajectory(np.array([f.stamp_ns for f in with_gt]), np.stack([f.T_world_cam for f in with_gt]))
+    gt = Trajectory.of_frames(chosen)
     ate = evaluate_ate(slam.trajectory(), gt)
     steps = np.array(work.steps)
     n = max(len(steps), 1)

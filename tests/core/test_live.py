@@ -150,7 +150,7 @@ def test_live_slam_tracks_and_integrates_every_keyframe(frames, process):
         torch.nn.utils.parameters_to_vector(tracked.decoders.parameters()),
         torch.nn.utils.parameters_to_vector(final.decoders.parameters()),
     )
-    gt = Trajectory(np.array([f.stamp_ns for f in frames]), np.stack([f.T_world_cam for f in frames]))
+    gt = Trajectory.of_frames(frames)
     est = slam.trajectory()
     assert np.array_equal(est.stamps_ns, gt.stamps_ns)
     assert np.allclose(est.poses[0], frames[0].T_world_cam, atol=1e-6)

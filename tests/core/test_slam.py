@@ -19,7 +19,7 @@ from neb_slam_core.slam import Slam, corrected_trajectory
 
 
 def ground_truth(frames) -> Trajectory:
-    return Trajectory(np.array([f.stamp_ns for f in frames]), np.stack([f.T_world_cam for f in frames]))
+    return Trajectory.of_frames(frames)
 
 
 def run(frames, cfg, T_world_first):

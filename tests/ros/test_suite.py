@@ -59,7 +59,7 @@ def _ate_cm(traj, frames) -> float:
     from neb_slam_core.eval.trajectory_metrics import evaluate_ate
     from neb_slam_core.io.trajectory import Trajectory
 
-    gt = Trajectory(np.array([f.stamp_ns for f in frames]), np.stack([f.T_world_cam for f in frames]))
+    gt = Trajectory.of_frames(frames)
     return evaluate_ate(traj, gt).rmse_cm
 
 
@@ -192,6 +192,14 @@ def test_separate_processes_replay_a_bag_like_the_offline_engine(small_bag, offl
 
     est = read_tum_trajectory(run.run_dir / "trajectory.txt")
     np.testing.assert_allclose(est.poses, offline[0].poses, atol=1e-6)
+    # the mapper counts what it published: an update per mapping keyframe at least (keyframes 0 and 5),
+    # each with the block whole (float32 under ci: 4 bytes per table value)
+    from neb_slam_core.config_io import load_config
+    from neb_slam_core.scene.hash_grid import hash_grid_param_count
+
+    table_mb = 4e-6 * hash_grid_param_count(load_config(CONFIG).block.grid)
+    assert run.metrics["map_updates"] >= 2 and run.metrics["map_update_mb"] >= 2 * table_mb, run.metrics
+    assert run.metrics["map_update_mb_per_s"] == pytest.approx(run.metrics["map_update_mb"] / run.replay_s)
 
 
 def test_one_process_slam_replays_a_bag_like_the_offline_engine(small_bag, offline, ros_env, tmp_path):

@@ -18,6 +18,10 @@ keyframes received, publishes the final mesh and writes ``map.pt``, ``mesh.ply``
 (every frame of the tracker's latest ``path``, each moved with the final pose of its keyframe) and
 ``config.yaml`` there.
 
+Updates carry the changes since the last one (changed table rows, ``scene/map_update.py``), so a receiver
+needs every update from its first on. Whenever another node subscribes to ``map_update`` (a tracker
+started late or again, the loop closer) the whole map goes out as the next update, to every subscriber.
+
 Every ``checkpoint_every`` integrated keyframes it writes ``output_dir/checkpoint.pt`` (atomically: the
 map and its optimiser, the keyframe store and poses, which keyframe stamp has which id). Started again
 with the same ``output_dir`` (after a crash or a ``SIGKILL``) it resumes from it: it offers the whole map
@@ -28,9 +32,8 @@ last checkpoint holds (``durable_keyframes``), so that the tracker can forget th
 that stops normally removes its checkpoint (``map_file`` continues its ``map.pt``).
 
 With ``map_file`` (a ``map.pt`` of ``save_map`` or of ``neb-slam run``) it continues that map: its
-blocks and decoders are the starting map, and until the first keyframe arrives the whole map goes out
-on ``map_update`` (version 1) whenever a new subscriber appears, so a tracker started with
-``wait_for_map`` tracks its first frame against it.
+blocks and decoders are the starting map, which goes out whole on ``map_update`` to each new subscriber,
+so a tracker started with ``wait_for_map`` tracks its first frame against it.
 
 Example::
 
@@ -124,7 +127,7 @@ class MapperNode(NebNode):
         else:
             self.block_map = new_block_map(self.cfg) if loaded is None else loaded
         self._rng = np.random.default_rng(self.cfg.seed)
-        self._version = 0 if loaded is None else 1  # version 1: the loaded map, whole
+        self._version = 0
         self._epoch = time.time_ns()  # this start's: trackers tell a restarted mapper by it
         self._durable = -1 if self._checkpoint is None else 0  # keyframes in the last checkpoint
         self._path: tuple[np.ndarray, np.ndarray] | None = None  # the tracker's path, in frame_id
@@ -136,8 +139,7 @@ class MapperNode(NebNode):
         self._progress = Progress()
         self._n_loops = 0
         if state is not None:
-            # the resumed map, offered whole, is the next version: later updates count on from it
-            self._keyframe_ids, self._version = dict(state.keyframe_ids), state.version + 1
+            self._keyframe_ids, self._version = dict(state.keyframe_ids), state.version
             self._T_map_world, self._n_loops = state.T_map_world, state.n_loops
             self._durable = len(state.backend.keyframes)
             torch.set_rng_state(state.torch_rng)
@@ -167,9 +169,8 @@ class MapperNode(NebNode):
             truncation_m=self.cfg.render.truncation_m,
         )
         self._n_update_subscribers = 0
-        self._offered = len(self._keyframe_ids)  # the map is offered whole until a keyframe after these comes
-        if self.opt.map_file or state is not None:
-            self._base_timer = self.create_timer(0.5, self._offer_loaded_map)
+        self._updates_sent, self._update_bytes = 0, 0  # published on map_update since this start
+        self.create_timer(0.5, self._offer_whole_map)
         if state is not None:
             self.map_outputs.align(self._T_map_world)
         self.start_worker()
@@ -182,13 +183,12 @@ class MapperNode(NebNode):
 
     # ------------------------------------------------------------------ callbacks (executor thread)
 
-    def _offer_loaded_map(self) -> None:
-        """Until a keyframe after those it started with: the loaded or resumed map, whole, to each new
-        map_update subscriber (a volatile topic gives a late subscriber nothing that was sent before it
-        came)."""
+    def _offer_whole_map(self) -> None:
+        """The whole map as the next update when a node subscribed to map_update since the last look (a
+        volatile topic gives a late subscriber nothing that was sent before it came)."""
         n = self.pub_update.get_subscription_count()
         if n > self._n_update_subscribers:
-            self.submit(self._publish_loaded_map, "publish_loaded_map")
+            self.submit(self._publish_whole_map, "publish_whole_map")
         self._n_update_subscribers = n
 
     def _on_path(self, msg: PathMsg) -> None:
@@ -306,10 +306,9 @@ class MapperNode(NebNode):
         self.get_logger().info(f"loop correction of keyframes {ids[0]}..{ids[-1]} handed to the mapper")
         return True
 
-    def _publish_loaded_map(self) -> str:
-        if len(self.backend.keyframes) > self._offered:
-            self._base_timer.cancel()  # the map is moving on: trackers get it from the updates now
-            return "not sent: keyframes have arrived"
+    def _publish_whole_map(self) -> str:
+        if not len(self.block_map):
+            return "not sent: no blocks yet"
         with self.side.map_lock:
             kfs = self.backend.keyframes
             stamps = np.array([kf.stamp_ns for kf in kfs.keyframes], dtype=np.int64)
@@ -319,18 +318,20 @@ class MapperNode(NebNode):
             update = map_update.capture(
                 self.block_map, range(len(self.block_map)), 0, ack, stamps, poses, mirror=self.side.mirror, whole=True
             )
-        # every offer carries the same version: a tracker that has it already ignores the next
-        self._publish_update(update, renumber=False)
+        # a new version: every receiver applies it, and the next updates are changes against it
+        self._publish_update(update)
         return f"{len(self.block_map)} blocks and {len(stamps)} keyframe poses sent"
 
-    def _publish_update(self, update: map_update.MapUpdate, renumber: bool = True) -> None:
-        # this node numbers what it sends (a loaded or resumed map offered whole has the version it started
-        # with, every offer the same), and says which start sent it and what its last checkpoint holds
-        if renumber:
-            self._version += 1
+    def _publish_update(self, update: map_update.MapUpdate) -> None:
+        # this node numbers what it sends in the order it publishes them, and says which start sent it and
+        # what its last checkpoint holds
+        self._version += 1
         update.version = self._version
         update.epoch, update.durable_keyframes = self._epoch, self._durable
-        self.pub_update.publish(UInt8MultiArray(data=map_update.encode(update)))
+        data = map_update.encode(update)
+        self.pub_update.publish(UInt8MultiArray(data=data))
+        self._updates_sent += 1
+        self._update_bytes += len(data)
 
     # ------------------------------------------------------------------ checkpoints (worker thread)
 
@@ -410,7 +411,8 @@ class MapperNode(NebNode):
         self.final_log(
             f"neb_slam mapper stopped: {len(self.backend.keyframes)} keyframes, {len(self.block_map)} "
             f"blocks, {p.mapping_steps} mapping steps and {p.background_chunks} background chunks, "
-            f"{self._n_loops} loop corrections; wrote {', '.join(Path(w).name for w in written)} to {self.out}"
+            f"{self._n_loops} loop corrections, {self._updates_sent} map updates ({self._update_bytes / 1e6:.1f} MB); "
+            f"wrote {', '.join(Path(w).name for w in written)} to {self.out}"
         )
 
 

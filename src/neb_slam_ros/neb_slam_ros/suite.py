@@ -157,15 +157,19 @@ def launch(
     if not one_process:
         run.metrics = finish_run_directory(out, bag, config, run.wall_s)
         run.metrics.update(tracker_summary(run.logs["tracker"].read_text()))
+        run.metrics.update(mapper_summary(run.logs["mapper"].read_text()))
     else:
         run.metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
     if run.replay_s > 0:
         run.metrics["replay_s"] = run.replay_s
         run.metrics["fps"] = run.metrics["n_frames"] / run.replay_s
+        if "map_update_mb" in run.metrics:
+            run.metrics["map_update_mb_per_s"] = run.metrics["map_update_mb"] / run.replay_s
         (out / "metrics.json").write_text(json.dumps(run.metrics, indent=2) + "\n")
     return run
 
 
+_MAPPER_SUMMARY = re.compile(r"mapper stopped: .*, (\d+) map updates \(([\d.]+) MB\)")
 _TRACKER_SUMMARY = re.compile(
     r"tracker stopped: (\d+) frames tracked \((\d+) failed\), .* (\d+) dropped, .*; (\d+) frames in, "
     r"mapping lag (\d+) \(max (\d+)\)"
@@ -187,6 +191,16 @@ def tracker_summary(log_text: str) -> dict:
         "mapping_lag_end": lag,
         "mapping_lag_max": lag_max,
     }
+
+
+def mapper_summary(log_text: str) -> dict:
+    """What the mapper's last log line says of its map updates: how many, and their MB (empty when the
+    line is missing)."""
+    found = _MAPPER_SUMMARY.findall(log_text)
+    if not found:
+        return {}
+    n, mb = found[-1]
+    return {"map_updates": int(n), "map_update_mb": float(mb)}
 
 
 def _replay_span_s(log_text: str) -> float:

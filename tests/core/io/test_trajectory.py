@@ -120,3 +120,18 @@ def test_empty_and_missing_files(tmp_path):
     assert len(read_tum_trajectory(write(tmp_path, "# only a comment\n\n"))) == 0
     with pytest.raises(DatasetError, match="trajectory file not found"):
         read_tum_trajectory(tmp_path / "missing.txt")
+
+
+def test_the_ground_truth_of_frames_keeps_those_with_a_pose_in_order():
+    from neb_slam_core.types import Intrinsics, RgbdFrame
+
+    intr = Intrinsics(10.0, 10.0, 2.0, 2.0, 4, 4)
+    poses = [np.eye(4), None, np.diag([1.0, -1.0, -1.0, 1.0])]
+    frames = [
+        RgbdFrame(np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32), intr, 100 * (k + 1), T)
+        for k, T in enumerate(poses)
+    ]
+    gt = Trajectory.of_frames(frames)
+    assert gt.stamps_ns.tolist() == [100, 300]
+    np.testing.assert_array_equal(gt.poses, np.stack([poses[0], poses[2]]))
+    assert len(Trajectory.of_frames([])) == 0

@@ -48,6 +48,13 @@ class Trajectory:
     def stamps_s(self) -> np.ndarray:
         return self.stamps_ns.astype(np.float64) * 1e-9
 
+    @classmethod
+    def of_frames(cls, frames) -> Trajectory:
+        """The ground truth that ``frames`` (:class:`~neb_slam_core.types.RgbdFrame`) carry: the stamp and
+        ``T_world_cam`` of each frame that has a pose."""
+        posed = [f for f in frames if f.T_world_cam is not None]
+        return cls(np.array([f.stamp_ns for f in posed], dtype=np.int64), np.array([f.T_world_cam for f in posed]))
+
 
 def stamp_s_to_ns(text_or_float) -> int:
     """Seconds (as text like ``'1305031102.160407'`` or a float) -> integer nanoseconds, exactly for text."""

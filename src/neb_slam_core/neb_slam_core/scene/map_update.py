@@ -151,27 +151,28 @@ class ReceiverMirror:
         starts over)."""
         ids = sorted(int(b) for b in block_ids)
         tables = [_table_rows(block_map.blocks[i]) for i in ids]
-        fits = all(float(np.abs(t).max(initial=0.0)) <= FLOAT16_MAX for t in tables)
-        value_bytes = 2 if self.float16 and fits else 4
+        fits = self.float16 and all(float(np.abs(t).max(initial=0.0)) <= FLOAT16_MAX for t in tables)
+        value_bytes = 2 if fits else 4
         states = []
         for i, table in zip(ids, tables):
             block = block_map.blocks[i]
-            wire = table.astype(_VALUE_TYPES[value_bytes])  # what the receivers get
+            # what the receivers get (``table`` is this update's own copy: float32 needs no other)
+            wire = table.astype(_VALUE_TYPES[value_bytes], copy=False)
             held = self._tables.get(i)
             rows = None
             if held is not None and not whole and held.shape == wire.shape and held.dtype == wire.dtype:
                 # what would go against what is there: a value float16 rounds to the held one has not moved
-                moved = np.abs(wire.astype(np.float32) - held.astype(np.float32)).max(axis=1)
+                moved = np.abs(wire.astype(np.float32, copy=False) - held.astype(np.float32, copy=False)).max(axis=1)
                 changed = np.flatnonzero(moved > self.tolerance).astype(np.uint32)
                 # an index costs 4 bytes: past about half the rows the whole table is smaller
                 if changed.size * (4 + table.shape[1] * value_bytes) < table.size * value_bytes:
                     rows = changed
             if rows is None:
                 self._tables[i] = wire  # kept as sent: float16 halves the mirror too
-                values = wire.reshape(-1).astype(np.float32)
+                values = wire.reshape(-1).astype(np.float32)  # a copy: the mirror's rows change in place
             else:
                 held[rows] = wire[rows]
-                values = wire[rows].reshape(-1).astype(np.float32)
+                values = wire[rows].reshape(-1).astype(np.float32, copy=False)  # indexing copied
             centre = block.centre.detach().cpu().numpy().astype(np.float32)
             states.append(BlockState(i, centre, values, pack_observed(block.observed), rows))
         return states, value_bytes

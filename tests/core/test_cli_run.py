@@ -502,6 +502,18 @@ def test_bad_frame_selection_and_non_empty_out_exit_2(small_scene, tmp_path, cap
 # ------------------------------------------------------------------------------------ pieces
 
 
+def test_frame_stamp_choices_are_the_loaders():
+    import argparse
+
+    from neb_slam_core.cli.run import add_arguments
+    from neb_slam_core.datasets.base import FRAME_STAMPS
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    (action,) = [a for a in parser._actions if a.dest == "frame_stamp"]
+    assert tuple(action.choices) == FRAME_STAMPS and action.default is None
+
+
 def test_select_frames():
     assert list(run_cmd.select_frames(10)) == list(range(10))
     assert list(run_cmd.select_frames(10, start=3, stride=3)) == [3, 6, 9]

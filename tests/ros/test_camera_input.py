@@ -99,3 +99,25 @@ def test_a_live_queue_keeps_its_frames_spread_over_a_wait():
         inp._enqueue(_frame(s))
     stamps = [f.stamp_ns for f in inp._queue]
     assert len(stamps) == 5 and stamps[-1] == 200 and max(np.diff([0, *stamps])) <= 60, stamps
+
+
+def test_a_pair_takes_the_depth_stamp_or_the_colour_stamp():
+    from neb_slam_ros.sync import StampPairer
+
+    for frame_stamp, expected in (("depth", [1_005, 1_040]), ("colour", [1_000, 1_033])):
+        pairer = StampPairer(slop_ns=20, frame_stamp=frame_stamp)
+        # colour at 1000 and 1033 ns, depth at 1005 and 1040: each pairs with the nearest within 20
+        assert pairer.push("rgb", 1_000, "c0") == ([], "")
+        (pair,), _ = pairer.push("depth", 1_005, "d0")
+        assert pairer.push("rgb", 1_033, "c1") == ([], "")
+        (second,), _ = pairer.push("depth", 1_040, "d1")
+        assert [pair.stamp_ns, second.stamp_ns] == expected
+        assert (pair.rgb, pair.depth, second.rgb, second.depth) == ("c0", "d0", "c1", "d1")
+
+
+def test_frame_stamp_parameter_is_checked():
+    from neb_slam_ros.camera_input import InputOptions
+    from neb_slam_ros.params import ParameterError
+
+    with pytest.raises(ParameterError, match="frame_stamp"):
+        InputOptions(frame_stamp="rgb").check()

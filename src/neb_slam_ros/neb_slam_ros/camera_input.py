@@ -4,7 +4,8 @@ topic, never an exception.
 
 Inputs (relative names, remappable): ``rgb/image`` (rgb8, bgr8, rgba8, bgra8, mono8), ``depth/image``
 (16UC1 or mono16 in units of ``depth_scale`` metres, or 32FC1 metres) and ``rgb/camera_info``. Colour and
-depth are paired by stamp (exact, or nearest within ``sync_slop_s``); stamps must increase. Depth follows
+depth are paired by stamp (exact, or nearest within ``sync_slop_s``; the frame takes the depth image's stamp,
+or the colour image's: ``frame_stamp``); stamps must increase. Depth follows
 REP 118: NaN and Inf pixels are invalid readings, a frame without any valid depth is skipped.
 """
 
@@ -21,6 +22,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
+from neb_slam_core.datasets.base import FRAME_STAMPS
 from neb_slam_core.types import RgbdFrame
 from neb_slam_ros import conversions, qos
 from neb_slam_ros.params import require
@@ -33,6 +35,7 @@ class InputOptions:
 
     depth_scale: float = 0.001
     sync_slop_s: float = 0.02
+    frame_stamp: str = "depth"
     reliable_inputs: bool = False
     frame_queue: int = 30
     ground_truth_topic: str = ""
@@ -41,6 +44,8 @@ class InputOptions:
     PARAMETER_DOCS = {
         "depth_scale": "metres per unit of 16UC1/mono16 depth images (32FC1 is metres)",
         "sync_slop_s": "colour and depth are paired by stamp: exact, or nearest within this",
+        "frame_stamp": "which image's stamp a pair's frame (its pose, TF and outputs) takes: depth (the image that "
+        "fixes the geometry) or colour",
         "reliable_inputs": "camera subscriptions reliable (lossless replay) instead of sensor-data QoS",
         "frame_queue": "frames kept while the engine is busy (beyond it one is dropped, with a warning: the "
         "oldest, or for a live engine the one whose neighbours lie closest in time); a live engine catching "
@@ -53,6 +58,7 @@ class InputOptions:
     def check(self) -> None:
         require(self.depth_scale > 0, "depth_scale", "> 0", self.depth_scale)
         require(self.sync_slop_s >= 0, "sync_slop_s", ">= 0", self.sync_slop_s)
+        require(self.frame_stamp in FRAME_STAMPS, "frame_stamp", f"one of {', '.join(FRAME_STAMPS)}", self.frame_stamp)
         require(self.frame_queue >= 1, "frame_queue", ">= 1", self.frame_queue)
         require(self.warn_period_s >= 0, "warn_period_s", ">= 0", self.warn_period_s)
 
@@ -106,7 +112,7 @@ class CameraInput:
         self.warnings = InputWarnings(node.get_logger(), opt.warn_period_s)
         self.topics = tuple(node.resolve_topic_name(t) for t in ("rgb/image", "depth/image", "rgb/camera_info"))
         self.slop_ns = int(round(opt.sync_slop_s * 1e9))
-        self._pairer = StampPairer(self.slop_ns)
+        self._pairer = StampPairer(self.slop_ns, frame_stamp=opt.frame_stamp)
         self._camera = None
         self._held: list = []  # frames that came before any camera info
         self.n_accepted = 0

@@ -3,7 +3,9 @@ topics; message_filters is not available as a wheel, and the rule here is small 
 
 Messages are pushed as they arrive. A pair is emitted as soon as both halves are there: same stamp, or
 the nearest within ``slop_ns``. A stamp that is not newer than the last paired one (out of order, or
-a duplicate) is refused with a reason, so that the engine always sees time moving forward.
+a duplicate) is refused with a reason, so that the engine always sees time moving forward. A pair is
+stamped with its depth image's stamp, or its colour image's (``frame_stamp``, see
+:data:`neb_slam_core.datasets.base.FRAME_STAMPS`).
 """
 
 from __future__ import annotations
@@ -12,10 +14,12 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
+from neb_slam_core.datasets.base import check_frame_stamp, frame_stamps
+
 
 @dataclass
 class Pair:
-    """A colour and a depth message that belong to one frame; ``stamp_ns`` is the colour image's."""
+    """A colour and a depth message that belong to one frame; ``stamp_ns`` is the frame's (``frame_stamp``)."""
 
     stamp_ns: int
     rgb: Any
@@ -25,8 +29,9 @@ class Pair:
 class StampPairer:
     """Pairs two streams by stamp. ``capacity`` unmatched messages are kept per stream (oldest dropped)."""
 
-    def __init__(self, slop_ns: int, capacity: int = 30):
+    def __init__(self, slop_ns: int, capacity: int = 30, frame_stamp: str = "depth"):
         self.slop_ns = int(slop_ns)
+        self.frame_stamp = check_frame_stamp("frame_stamp", frame_stamp)
         self.capacity = capacity
         self._pending: dict[str, OrderedDict[int, Any]] = {"rgb": OrderedDict(), "depth": OrderedDict()}
         self.last_stamp_ns: int | None = None
@@ -58,7 +63,7 @@ class StampPairer:
             if best is None:
                 break
             s_rgb, s_depth = best
-            pairs.append(Pair(s_rgb, rgb.pop(s_rgb), depth.pop(s_depth)))
+            pairs.append(Pair(frame_stamps(s_rgb, s_depth, self.frame_stamp), rgb.pop(s_rgb), depth.pop(s_depth)))
             self.last_stamp_ns = max(s_rgb, s_depth)
             # whatever is older than the pair can no longer be paired in order
             for stream in (rgb, depth):

@@ -269,11 +269,15 @@ def test_ros1_bag_with_tum_topic_names(tmp_path):
     assert ds.topics.rgb == "/camera/rgb/image_color" and ds.topics.ground_truth == "/mocap/pose"
     assert len(ds) == 3
     for i, f in enumerate(ds):
-        assert f.stamp_ns == T0 + i * DT  # the colour header stamp, not the log time
+        assert f.stamp_ns == T0 + i * DT + 3_000_000  # the depth header stamp, not the log time
+        assert (f.extras["colour_stamp_ns"], f.extras["depth_stamp_ns"]) == (T0 + i * DT, f.stamp_ns)
         np.testing.assert_array_equal(f.rgb, rgb_of(i))
         np.testing.assert_array_equal(f.depth_m, np.nan_to_num(depth[i], nan=0.0))
         np.testing.assert_allclose(f.T_world_cam, poses[i], atol=1e-12)
         assert f.intrinsics == INTR
+    colour = open_dataset(path, frame_stamp="colour")
+    assert colour.stamps_ns.tolist() == [T0 + i * DT for i in range(3)]  # the colour header stamps
+    np.testing.assert_allclose(colour[2].T_world_cam, poses[2], atol=1e-12)
 
 
 def test_unpaired_frames_are_skipped_with_one_warning(tmp_path, caplog):
@@ -290,7 +294,7 @@ def test_unpaired_frames_are_skipped_with_one_warning(tmp_path, caplog):
         ds = BagDataset(bag)
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1 and "2 of 4" in warnings[0].getMessage()
-    assert list(ds.stamps_ns) == rgb_t[:2]
+    assert list(ds.stamps_ns) == depth_t[:2]  # their depth images' stamps
     assert ds[1].depth_m[0, 0] == np.float32(0.002)  # colour 1 paired with depth 1 (19 ms apart)
     # a wider window pairs colour 3 with the late depth image as well
     caplog.clear()

@@ -63,8 +63,11 @@ def test_association_values_and_poses(fr2, fake, skip_warnings):
     assert len(ds) == 3
     (w,) = skip_warnings()
     assert "skipped 1 of 4" in w.getMessage()
-    assert [ds[i].stamp_ns for i in range(3)] == [1_000_000_000, 1_033_000_000, 1_100_000_000]
-    np.testing.assert_array_equal(ds.stamps_ns, [1_000_000_000, 1_033_000_000, 1_100_000_000])
+    # a frame takes its depth image's stamp; both images' stamps stay in extras
+    assert [ds[i].stamp_ns for i in range(3)] == [1_005_000_000, 1_040_000_000, 1_095_000_000]
+    np.testing.assert_array_equal(ds.stamps_ns, [1_005_000_000, 1_040_000_000, 1_095_000_000])
+    assert [ds[i].extras["colour_stamp_ns"] for i in range(3)] == [1_000_000_000, 1_033_000_000, 1_100_000_000]
+    assert [ds[i].extras["depth_stamp_ns"] for i in range(3)] == [1_005_000_000, 1_040_000_000, 1_095_000_000]
     # depth PNG / 5000: 5000 -> 1 m, 10000 -> 2 m, 2500 -> 0.5 m
     assert [float(ds[i].depth_m[3, 4]) for i in range(3)] == [1.0, 2.0, 0.5]
     assert ds[1].rgb[0, 0].tolist() == [40, 50, 60]
@@ -77,6 +80,38 @@ def test_association_values_and_poses(fr2, fake, skip_warnings):
     assert ds.has_ground_truth
     with pytest.raises(IndexError):
         ds[3]
+
+
+def test_colour_frame_stamps_pick_the_ground_truth_nearest_the_colour_image(tmp_path, fake):
+    root = make_tum(tmp_path / "rgbd_dataset_freiburg2_desk", fake)
+    (root / "groundtruth.txt").write_text(
+        "# timestamp tx ty tz qx qy qz qw\n"
+        "1.0000 1.0 0.0 0.0 0 0 0 1\n"
+        "1.0060 2.0 0.0 0.0 0 0 0 1\n"
+        "1.0320 3.0 0.0 0.0 0 0 0 1\n"
+        "1.0410 4.0 0.0 0.0 0 0 0 1\n"
+    )
+    colour = TumDataset(root, frame_stamp="colour")
+    assert colour.stamps_ns.tolist() == [1_000_000_000, 1_033_000_000, 1_100_000_000]
+    # nearest ground truth to 1.000 is 1.000, to 1.033 is 1.032; 1.100 has none within 0.02 s
+    assert [colour[i].T_world_cam[0, 3] for i in range(2)] == [1.0, 3.0] and colour[2].T_world_cam is None
+    depth = TumDataset(root)
+    assert depth.stamps_ns.tolist() == [1_005_000_000, 1_040_000_000, 1_095_000_000]
+    # to 1.005 it is 1.006, to 1.040 it is 1.041
+    assert [depth[i].T_world_cam[0, 3] for i in range(2)] == [2.0, 4.0] and depth[2].T_world_cam is None
+    # the same images either way
+    assert [colour[i].rgb[0, 0].tolist() for i in range(3)] == [depth[i].rgb[0, 0].tolist() for i in range(3)]
+
+
+def test_frame_stamp_must_be_depth_or_colour(fr2):
+    with pytest.raises(DatasetError, match="frame_stamp must be one of depth, colour, got 'rgb'"):
+        TumDataset(fr2, frame_stamp="rgb")
+
+
+def test_open_dataset_names_an_option_the_loader_lacks(fr2):
+    assert open_dataset(fr2, frame_stamp="colour").frame_stamp == "colour"
+    with pytest.raises(DatasetError, match="the tum loader has no option fps"):
+        open_dataset(fr2, fps=30.0)
 
 
 def test_intrinsics_from_folder_name(tmp_path, fr2, fake):
@@ -210,7 +245,7 @@ def _quat_to_matrix(qx, qy, qz, qw):
 
 
 def test_real_fr1_xyz(tum_dir, skip_warnings):
-    ds = open_dataset(tum_dir)
+    ds = open_dataset(tum_dir, frame_stamp="colour")
     assert isinstance(ds, TumDataset)
     # 300 colour frames, 6 of them without a depth frame within 0.02 s
     assert len(ds) == 294
@@ -250,6 +285,10 @@ def test_real_fr1_xyz(tum_dir, skip_warnings):
     y, x = 240, 320
     assert raw[y, x] > 0
     assert f0.depth_m[y, x] == np.float32(raw[y, x]) / np.float32(5000.0)
+    # by default the frame is stamped with that depth image's time
+    depth_stamp = depth_rows[int(np.argmin(np.abs(d_s - 1305031102.175304)))][0]
+    assert depth_stamp == "1305031102.160407"  # 15 ms before the colour image
+    assert open_dataset(tum_dir)[0].stamp_ns == 1_305_031_102_160_407_000
     assert np.array_equal(f0.depth_m == 0, raw == 0)
     assert f0.rgb.shape == (480, 640, 3)
 

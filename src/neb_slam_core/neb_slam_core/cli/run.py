@@ -92,6 +92,7 @@ RESUME_FIXED = {
     "seed": None,
     "device": None,
     "format": None,
+    "frame_stamp": None,
     "map": None,
     "live": False,
     "out": None,
@@ -122,6 +123,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, metavar="S", help="random seed (default: the config's)")
     p.add_argument("--device", choices=("cpu", "cuda"), help="torch device (default: the config's)")
     p.add_argument("--format", metavar="FMT", help="dataset loader (default: detect from the layout)")
+    p.add_argument(
+        "--frame-stamp",
+        choices=("depth", "colour"),  # neb_slam_core.datasets.base.FRAME_STAMPS (not imported: the CLI starts lazily)
+        help="TUM folders and bags, whose colour and depth images are taken apart: which image's time stamps a "
+        "frame, its pose and its ground truth (default: depth)",
+    )
     p.add_argument(
         "--map",
         type=Path,
@@ -256,7 +263,8 @@ def run(args: argparse.Namespace) -> int:
     if args.source is None:
         raise ConfigError("give the dataset folder or bag to run on (or --resume RUN_DIR)")
     # --- check everything before the (long) run starts
-    dataset = open_dataset(args.source, args.format)
+    loader_options = {} if args.frame_stamp is None else {"frame_stamp": args.frame_stamp}
+    dataset = open_dataset(args.source, args.format, **loader_options)
     cfg = resolve_config(args, dataset)
     if len(dataset) == 0:
         raise DatasetError(args.source, "the dataset has no frames")
@@ -320,7 +328,12 @@ def run(args: argparse.Namespace) -> int:
         checkpoints = None
     else:
         slam = Slam(cfg, T_world_first, block_map)
-        resume = {"source": str(Path(args.source).resolve()), "format": dataset.name, "options": options}
+        resume = {
+            "source": str(Path(args.source).resolve()),
+            "format": dataset.name,
+            "loader_options": loader_options,
+            "options": options,
+        }
         checkpoints = _Checkpoints(run_dir, args.checkpoint_every, resume)
     return _execute(slam, skipper, indices, first, RunLog(), run_dir, options, args, checkpoints)
 
@@ -340,7 +353,7 @@ def _resume(args: argparse.Namespace) -> int:
         raise ConfigError(f"--resume continues the run as it was started: drop {flags}")
     ckpt = load_checkpoint(Path(args.resume) / CHECKPOINT_FILE)
     r = ckpt.resume
-    dataset = open_dataset(r["source"], r["format"])
+    dataset = open_dataset(r["source"], r["format"], **r.get("loader_options", {}))
     skipper = FrameSkipper(dataset)
     skipper.unreadable = list(r.get("unreadable", []))
     remaining = r["remaining"]

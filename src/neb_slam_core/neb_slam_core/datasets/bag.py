@@ -8,7 +8,8 @@ them can be named explicitly. Ground truth comes from a geometry_msgs/PoseStampe
 one (``/tf`` is not read).
 
 Colour (rgb8, bgr8, rgba8, bgra8, mono8) and depth (16UC1 / mono16 in units of ``depth_scale`` metres,
-or 32FC1 metres) are paired by ``header.stamp``: nearest within ``sync_slop_s``, each image used once.
+or 32FC1 metres) are paired by ``header.stamp``: nearest within ``sync_slop_s``, each image used once; a
+frame takes the depth image's stamp (``frame_stamp``).
 Intrinsics come from the first camera_info message (or an explicit ``intrinsics``, e.g. a calibration
 better than the driver's); every image must have their size.
 
@@ -48,7 +49,15 @@ from ..io.bag import (
 )
 from ..io.bag_salvage import STORAGE_SUFFIXES, salvage_bag
 from ..types import Intrinsics, RgbdFrame
-from .base import Dataset, associate_unique, check_intrinsics, register, warn_skipped
+from .base import (
+    Dataset,
+    associate_unique,
+    check_frame_stamp,
+    check_intrinsics,
+    frame_stamps,
+    register,
+    warn_skipped,
+)
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +107,8 @@ class BagDataset(Dataset):
         sync_slop_s: largest colour-depth stamp difference for a pair.
         intrinsics: use these instead of the camera_info topic (which then need not exist); the
             distortion still comes from camera_info when there is one.
+        frame_stamp: ``"depth"`` or ``"colour"``: which image's ``header.stamp`` stamps a frame
+            (:data:`~neb_slam_core.datasets.base.FRAME_STAMPS`) and picks its ground-truth pose.
     """
 
     def __init__(
@@ -110,6 +121,7 @@ class BagDataset(Dataset):
         depth_scale: float = 0.001,
         sync_slop_s: float = 0.02,
         intrinsics: Intrinsics | None = None,
+        frame_stamp: str = "depth",
     ):
         self._reader = None
         self._reader_pid = -1
@@ -120,6 +132,7 @@ class BagDataset(Dataset):
                 self.root,
                 f"not a bag: expected a ROS 2 bag directory with metadata.yaml, or a {', '.join(BAG_SUFFIXES)} file",
             )
+        self.frame_stamp = check_frame_stamp(self.root, frame_stamp)
         if not depth_scale > 0:
             raise DatasetError(self.root, f"depth_scale must be > 0 metres per unit, got {depth_scale}")
         if not sync_slop_s >= 0:
@@ -366,7 +379,8 @@ class BagDataset(Dataset):
         rgb_ix, depth_ix = as_index(streams[t.rgb]), as_index(streams[t.depth])
         pair = associate_unique(rgb_ix.stamp_ns, depth_ix.stamp_ns, int(round(self.sync_slop_s * 1e9)))
         keep = np.flatnonzero(pair >= 0)
-        keep = keep[np.argsort(rgb_ix.stamp_ns[keep], kind="stable")]
+        stamps = frame_stamps(rgb_ix.stamp_ns[keep], depth_ix.stamp_ns[pair[keep]], self.frame_stamp)
+        keep = keep[np.argsort(stamps, kind="stable")]
         n_rgb, n_depth = len(rgb_ix.stamp_ns), len(depth_ix.stamp_ns)
         unused_depth = n_depth - len(keep)
         why = (
@@ -386,7 +400,7 @@ class BagDataset(Dataset):
             )
         self._rgb_ix, self._depth_ix = rgb_ix, depth_ix
         self._rgb_rows, self._depth_rows = keep, pair[keep]
-        self._stamps_ns = rgb_ix.stamp_ns[keep]
+        self._stamps_ns = frame_stamps(rgb_ix.stamp_ns[keep], depth_ix.stamp_ns[pair[keep]], self.frame_stamp)
 
         # Each pose is used by at most one frame (the one nearest in time): a frame the bag gives no
         # pose must not borrow its neighbour's. Frames without one keep T_world_cam = None.
@@ -426,7 +440,7 @@ class BagDataset(Dataset):
 
     @property
     def stamps_ns(self) -> np.ndarray:
-        """``(N,)`` int64 colour stamps of the frames."""
+        """``(N,)`` int64 stamps of the frames (``frame_stamp``'s image)."""
         return self._stamps_ns
 
     def __len__(self) -> int:
@@ -483,4 +497,6 @@ class BagDataset(Dataset):
             raise UnreadableFrameError(self.root, f"topic {depth_topic}: {exc}") from None
         pose = None if self._poses is None or self._poses[i] is None else self._poses[i].copy()
         extras = {"distortion": self.distortion} if self.distortion else {}
+        extras["colour_stamp_ns"] = int(self._rgb_ix.stamp_ns[self._rgb_rows[i]])
+        extras["depth_stamp_ns"] = int(self._depth_ix.stamp_ns[self._depth_rows[i]])
         return RgbdFrame(rgb, depth, self.intrinsics, int(self._stamps_ns[i]), pose, extras=extras)

@@ -12,6 +12,7 @@ does not decode), so that a caller decides in one place, for every format, wheth
 
 from __future__ import annotations
 
+import inspect
 import logging
 import re
 from abc import ABC, abstractmethod
@@ -112,12 +113,13 @@ def loader_class(name: str) -> type[Dataset]:
 
 
 def open_dataset(path: str | Path, fmt: str | None = None, **options) -> Dataset:
-    """Open ``path`` with the loader ``fmt``, or detect the format from the layout when ``fmt`` is None."""
+    """Open ``path`` with the loader ``fmt``, or detect the format from the layout when ``fmt`` is None;
+    ``options`` are keyword arguments of the loader's constructor (a name it lacks is a :class:`DatasetError`)."""
     path = Path(path)
     if not path.exists():
         raise DatasetError(path, "no such file or directory")
     if fmt is not None:
-        return loader_class(fmt)(path, **options)
+        return _opened(loader_class(fmt), path, options)
     _import_loaders()
     matches = [cls for cls in _REGISTRY.values() if cls.detect(path)]
     if not matches:
@@ -127,7 +129,17 @@ def open_dataset(path: str | Path, fmt: str | None = None, **options) -> Dataset
     if len(matches) > 1:
         names = ", ".join(sorted(cls.name for cls in matches))
         raise DatasetError(path, f"layout matches several formats ({names}); pass the format explicitly")
-    return matches[0](path, **options)
+    return _opened(matches[0], path, options)
+
+
+def _opened(cls: type[Dataset], path: Path, options: dict) -> Dataset:
+    takes = [name for name in inspect.signature(cls.__init__).parameters if name not in ("self", "root")]
+    unknown = sorted(set(options) - set(takes))
+    if unknown:
+        raise DatasetError(
+            path, f"the {cls.name} loader has no option {', '.join(unknown)} (it takes: {', '.join(takes) or 'none'})"
+        )
+    return cls(path, **options)
 
 
 def _import_loaders() -> None:
@@ -221,6 +233,26 @@ def read_number_rows(path: Path, n_per_line: int, what: str, missing: str) -> li
             raise DatasetError(path, f"line {lineno}: expected {n_per_line} numbers ({what}), got {values.size}")
         rows.append((lineno, values))
     return rows
+
+
+#: Which capture time stamps a frame whose colour and depth images were taken at different times (a
+#: sensor that does not synchronise them, such as TUM's Kinect: up to 20 ms apart). ``depth``: the depth
+#: image fixes the frame's geometry, which decides most of the tracked pose, so the pose is the camera's
+#: at the depth image's time; ``colour``: the colour image's time (what the TUM tools and most RGB-D SLAM
+#: evaluations use).
+FRAME_STAMPS = ("depth", "colour")
+
+
+def check_frame_stamp(where: str | Path | None, frame_stamp: str) -> str:
+    """``frame_stamp`` if it is one of :data:`FRAME_STAMPS`; else a :class:`DatasetError` at ``where``."""
+    if frame_stamp not in FRAME_STAMPS:
+        raise DatasetError(where, f"frame_stamp must be one of {', '.join(FRAME_STAMPS)}, got {frame_stamp!r}")
+    return frame_stamp
+
+
+def frame_stamps(colour_ns, depth_ns, frame_stamp: str):
+    """The stamps of paired frames (int64 arrays or ints) by ``frame_stamp`` (:data:`FRAME_STAMPS`)."""
+    return depth_ns if frame_stamp == "depth" else colour_ns
 
 
 def associate(query_ns: np.ndarray, ref_ns: np.ndarray, max_dt_ns: int) -> np.ndarray:

@@ -1,7 +1,9 @@
 """TUM RGB-D benchmark folders: ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
 
 Colour and depth are associated by the benchmark's rule (nearest stamp within 0.02 s, each frame used
-once); the ground-truth pose is the nearest motion-capture sample within 0.02 s. Bad lines of
+once). A frame is stamped with its depth image's time (``frame_stamp``, see
+:data:`~neb_slam_core.datasets.base.FRAME_STAMPS`; ``extras`` keeps both images' stamps); the
+ground-truth pose is the nearest motion-capture sample within 0.02 s of that stamp. Bad lines of
 ``groundtruth.txt`` (malformed, non-finite) are skipped with one warning: ground truth only gives the
 first pose and the evaluation, and both can use the other lines. Depth PNGs store
 metres x 5000. Intrinsics are the benchmark's published values for the sensor named in the folder name
@@ -21,7 +23,17 @@ import numpy as np
 from ..errors import DatasetError
 from ..io.trajectory import read_tum_trajectory, stamp_s_to_ns
 from ..types import Intrinsics, RgbdFrame
-from .base import Dataset, associate, associate_unique, read_depth, read_rgb, register, warn_skipped
+from .base import (
+    Dataset,
+    associate,
+    associate_unique,
+    check_frame_stamp,
+    frame_stamps,
+    read_depth,
+    read_rgb,
+    register,
+    warn_skipped,
+)
 
 #: The benchmark's published intrinsics (640x480) and distortion (k1 k2 p1 p2 k3) per sensor.
 TUM_CAMERAS: dict[str, tuple[Intrinsics, tuple[float, ...]]] = {
@@ -91,10 +103,19 @@ class TumDataset(Dataset):
         root: the sequence folder.
         camera: ``'fr1'``, ``'fr2'`` or ``'fr3'``; default: from the folder name.
         intrinsics: explicit intrinsics, overriding ``camera``.
+        frame_stamp: ``"depth"`` or ``"colour"``: which image's time stamps a frame (and picks its
+            ground-truth pose).
     """
 
-    def __init__(self, root: str | Path, camera: str | None = None, intrinsics: Intrinsics | None = None):
+    def __init__(
+        self,
+        root: str | Path,
+        camera: str | None = None,
+        intrinsics: Intrinsics | None = None,
+        frame_stamp: str = "depth",
+    ):
         self.root = Path(root)
+        self.frame_stamp = check_frame_stamp(self.root, frame_stamp)
         if intrinsics is None and camera is None and (self.root / INTRINSICS_FILE).is_file():
             intrinsics = read_intrinsics_json(self.root / INTRINSICS_FILE)
         if intrinsics is None:
@@ -117,7 +138,10 @@ class TumDataset(Dataset):
         pair = associate_unique(rgb_ns, depth_ns, MAX_DT_NS)
         keep = np.flatnonzero(pair >= 0)
         warn_skipped(self.root, len(rgb_ns) - len(keep), len(rgb_ns), "colour frames with no depth within 0.02 s")
-        self._stamps_ns = rgb_ns[keep]
+        stamps = frame_stamps(rgb_ns[keep], depth_ns[pair[keep]], frame_stamp)
+        keep = keep[np.argsort(stamps, kind="stable")]  # in the order of the chosen stamps
+        self._colour_ns, self._depth_ns = rgb_ns[keep], depth_ns[pair[keep]]
+        self._stamps_ns = frame_stamps(self._colour_ns, self._depth_ns, frame_stamp)
         self._rgb = [rgb_names[i] for i in keep]
         self._depth = [depth_names[j] for j in pair[keep]]
 
@@ -162,6 +186,9 @@ class TumDataset(Dataset):
             )
         depth = read_depth(self.root / self._depth[i], DEPTH_SCALE, expected_size=size)
         pose = None if self._poses is None or self._poses[i] is None else self._poses[i].copy()
-        return RgbdFrame(
-            rgb, depth, self.intrinsics, int(self._stamps_ns[i]), pose, extras={"distortion": self.distortion}
-        )
+        extras = {
+            "distortion": self.distortion,
+            "colour_stamp_ns": int(self._colour_ns[i]),
+            "depth_stamp_ns": int(self._depth_ns[i]),
+        }
+        return RgbdFrame(rgb, depth, self.intrinsics, int(self._stamps_ns[i]), pose, extras=extras)

@@ -117,6 +117,23 @@ def repo_relative(value):
     return value
 
 
+def add_variant_and_output_arguments(p, what: str = "config") -> None:
+    """``--variant LABEL KEY=VALUE ...`` (repeatable: a label and its ``what`` overrides), ``--json`` and
+    ``--results-dir``: the arguments of the benchmarks that compare configurations."""
+    p.add_argument(
+        "--variant",
+        nargs="+",
+        action="append",
+        default=[],
+        metavar=("LABEL", "KEY=VALUE"),
+        help=f"a label and its {what} overrides (repeatable)",
+    )
+    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
+    p.add_argument(
+        "--results-dir", type=Path, default=None, help="where the dated JSON goes (default benchmarks/results)"
+    )
+
+
 def record(
     benchmark: str,
     figures: dict,

@@ -95,6 +95,9 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=None, help="process only the first N frames")
     p.add_argument("--out", type=Path, default=None, help="run directory (default runs/bench-<sequence>-<date-time>)")
     p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
+    p.add_argument(
+        "--results-dir", type=Path, default=None, help="where the dated JSON goes (default benchmarks/results)"
+    )
     args = p.parse_args(argv)
 
     source = source_of(args.sequence)
@@ -123,6 +126,8 @@ def main() -> None:
         "config": config,
         "frames": metrics.get("n_frames"),
         "ate_rmse_cm": metrics.get("ate_rmse_cm"),
+        "rpe_frame_trans_cm": metrics.get("rpe_frame_trans_cm"),
+        "rpe_frame_rot_deg": metrics.get("rpe_frame_rot_deg"),
         "s_per_frame": metrics.get("s_per_frame"),
         "track_s_per_frame": round(metrics["track_ms_mean"] / 1e3, 3),
         "map_s_per_frame": round(metrics["map_ms_mean"] / 1e3, 3),
@@ -150,7 +155,7 @@ def main() -> None:
     print(json.dumps(figures, indent=2))
     from common import record
 
-    record(f"slam-{args.sequence}", figures, args.json)
+    record(f"slam-{args.sequence}", figures, args.json, results_dir=args.results_dir)
 
 
 if __name__ == "__main__":

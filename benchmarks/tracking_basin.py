@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import TUM, record
+from common import TUM, add_variant_and_output_arguments, record
 
 from neb_slam_core.config_io import load_config
 from neb_slam_core.datasets import open_dataset
@@ -104,27 +104,21 @@ def run_stride(frames: list, stride: int, overrides: list[str]) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--frames", type=int, default=150, help="the first N frames of the sequence")
+    p.add_argument("--frames", type=int, default=150, help="N frames of the sequence")
+    p.add_argument("--start", type=int, default=0, help="from this frame on (the engine starts at its ground truth)")
     p.add_argument("--strides", type=int, nargs="+", default=[1, 2, 4, 6, 8])
     p.add_argument("--every-s", type=float, default=0.15, help="keyframes.every_s of every run")
-    p.add_argument(
-        "--variant",
-        nargs="+",
-        action="append",
-        default=[],
-        metavar=("LABEL", "KEY=VALUE"),
-        help="a label and its config overrides (repeatable)",
-    )
     p.add_argument("--source", type=Path, default=TUM, help="a TUM sequence folder (default: the shared fr1_xyz)")
-    p.add_argument("--json", type=Path, default=None, help="a copy of the stamped figures (see benchmarks/results/)")
+    add_variant_and_output_arguments(p)
     args = p.parse_args()
     if not args.source.is_dir():
         raise SystemExit(f"{args.source} not found: give --source, or set NEB_SLAM_SHARED_DATA")
     ds = open_dataset(args.source)
-    frames = [ds[i] for i in range(min(args.frames, len(ds)))]
+    frames = [ds[i] for i in range(args.start, min(args.start + args.frames, len(ds)))]
     base = ["loop.enabled=false", f"keyframes.every_s={args.every_s}"]
     variants = [["paper"]] + args.variant
-    figures: dict = {"source": str(args.source), "frames": len(frames), "every_s": args.every_s, "variants": {}}
+    figures: dict = {"source": str(args.source), "start": args.start, "frames": len(frames), "every_s": args.every_s}
+    figures["variants"] = {}
     for label, *sets in variants:
         rows = []
         for stride in args.strides:
@@ -136,7 +130,7 @@ def main() -> None:
             rows.append(row)
             print(f"{label:>10} stride {stride}: " + ", ".join(f"{k} {v}" for k, v in row.items() if k != "stride"))
         figures["variants"][label] = {"overrides": sets, "strides": rows}
-    record("tracking_basin", figures, args.json)
+    record("tracking_basin", figures, args.json, results_dir=args.results_dir)
 
 
 if __name__ == "__main__":

@@ -121,3 +121,17 @@ def test_frame_stamp_parameter_is_checked():
 
     with pytest.raises(ParameterError, match="frame_stamp"):
         InputOptions(frame_stamp="rgb").check()
+
+
+def test_a_frame_takes_its_depth_image_stamp_and_keeps_both():
+    from neb_slam_core.types import COLOUR_STAMP, DEPTH_STAMP, Intrinsics
+    from neb_slam_ros import conversions
+
+    cam = (Intrinsics(fx=2.0, fy=2.0, cx=2.0, cy=1.5, width=4, height=3), (0.0,) * 5)
+    rgb = conversions.rgb_msg(np.zeros((3, 4, 3), np.uint8), 1_000, "cam")
+    depth = conversions.depth_msg(np.ones((3, 4), np.float32), 1_007, "cam")
+    topics = ("rgb/image", "depth/image", "rgb/camera_info")
+    for frame_stamp, expected in (("depth", 1_007), ("colour", 1_000)):
+        frame, _ = conversions.frame_from_msgs(rgb, depth, cam, 0.001, topics, frame_stamp=frame_stamp)
+        assert frame.stamp_ns == expected
+        assert (frame.extras[COLOUR_STAMP], frame.extras[DEPTH_STAMP]) == (1_000, 1_007)

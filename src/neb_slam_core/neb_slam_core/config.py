@@ -286,6 +286,11 @@ class TrackingConfig:
     is left out. The map there is whatever its initialisation and its neighbours' fitting made of it:
     its free space and surfaces are not the scene's, and they pull a camera that moved towards new
     space back towards the space the map knows.
+
+    ``colour_timing`` (ours; False: the paper, the colour image as taken): a frame whose colour image was
+    taken at another time than its depth image (the loader's ``colour_stamp_ns`` / ``depth_stamp_ns``
+    extras) has its colour resampled to the depth image's time, moved by the motion between the last two
+    tracked frames (:mod:`~neb_slam_core.geometry.colour_timing`), before it is tracked and kept.
     """
 
     n_rays: int = 1024
@@ -305,6 +310,7 @@ class TrackingConfig:
     coarse_stop_step_m: float = 2e-3
     relocalise: bool = False
     observed_only: bool = True
+    colour_timing: bool = False
 
 
 @dataclass(frozen=True)

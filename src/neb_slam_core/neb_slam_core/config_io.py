@@ -432,6 +432,7 @@ RULES: dict[str, Any] = {
     "tracking.coarse_stop_step_m": _NON_NEGATIVE,
     "tracking.relocalise": _Bool(),
     "tracking.observed_only": _Bool(),
+    "tracking.colour_timing": _Bool(),
     "keyframes.every": _POSITIVE_INT,
     "keyframes.every_s": _NON_NEGATIVE,
     "keyframes.pixel_fraction": _Num(0.0, 1.0, lo_open=True, hi_open=False),

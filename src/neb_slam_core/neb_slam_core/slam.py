@@ -35,6 +35,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from .config import SlamConfig
+from .geometry.colour_timing import colour_at_depth_time, colour_offset_ns
 from .geometry.rays import backproject_pixels
 from .geometry.rectify import Rectifier
 from .geometry.se3 import interpolate_correction, invert, orthonormalize
@@ -354,6 +355,7 @@ class Frontend:
             return self._first(frame, t_start)
 
         t0 = time.perf_counter()
+        frame = self._colour_at_depth_time(frame)
         features = self.describe(frame)
         T_pred = self.prediction(frame.stamp_ns, features)
         tracked = self.tracker.track(self.block_map, frame, T_pred)
@@ -446,6 +448,17 @@ class Frontend:
             return None
         i2, i1 = self._tracked
         return invert(self.pose_of(i2)) @ self.pose_of(i1), self._frames[i1].stamp_ns - self._frames[i2].stamp_ns
+
+    def _colour_at_depth_time(self, frame: RgbdFrame) -> RgbdFrame:
+        """With ``tracking.colour_timing``, ``frame`` with its colour resampled to its depth image's time
+        by the motion between the last two tracked frames; else, or without that motion or the two
+        capture times, ``frame``."""
+        offset_ns = colour_offset_ns(frame)
+        motion = self._tracked_motion() if self.cfg.tracking.colour_timing and offset_ns else None
+        if motion is None or motion[1] <= 0:
+            return frame
+        delta, dt_ns = motion
+        return colour_at_depth_time(frame, scale_motion(delta, offset_ns / dt_ns))
 
     def predict(self, stamp_ns: int) -> np.ndarray:
         """The constant-velocity prediction of the pose of a frame stamped ``stamp_ns`` (the next one).

@@ -37,6 +37,10 @@ class Intrinsics:
         return (self.fx, self.fy, self.cx, self.cy, self.width, self.height)
 
 
+#: :attr:`RgbdFrame.extras` keys of the colour and the depth image's capture times (ns)
+COLOUR_STAMP, DEPTH_STAMP = "colour_stamp_ns", "depth_stamp_ns"
+
+
 @dataclass
 class RgbdFrame:
     """One RGB-D frame.
@@ -51,6 +55,8 @@ class RgbdFrame:
         extras: loader-specific data; ``extras["distortion"]`` holds the lens distortion of both images
             as OpenCV/ROS ``plumb_bob`` coefficients (k1, k2, p1, p2, k3) when the images are not
             rectified (TUM's freiburg cameras); the engine rectifies such frames on input.
+            ``extras[COLOUR_STAMP]`` and ``extras[DEPTH_STAMP]`` hold the two images' own capture times
+            (ns) where the sensor took them apart (TUM, bags, the nodes); ``stamp_ns`` is one of them.
     """
 
     rgb: np.ndarray

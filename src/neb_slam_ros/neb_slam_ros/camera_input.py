@@ -234,7 +234,13 @@ class CameraInput:
         for pair in pairs:
             try:
                 frame, n_nan = conversions.frame_from_msgs(
-                    pair.rgb, pair.depth, self._camera, self.opt.depth_scale, self.topics, self.n_accepted
+                    pair.rgb,
+                    pair.depth,
+                    self._camera,
+                    self.opt.depth_scale,
+                    self.topics,
+                    self.n_accepted,
+                    self.opt.frame_stamp,
                 )
             except conversions.InputError as exc:
                 self.warnings.warn(f"{exc.topic}:{exc.problem[:40]}", f"{exc}: frame {pair.stamp_ns} skipped")

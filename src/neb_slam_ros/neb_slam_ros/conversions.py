@@ -16,10 +16,11 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from neb_slam_core.datasets.base import frame_stamps
 from neb_slam_core.geometry.se3 import invert, pose_from_tum, pose_to_tum
 from neb_slam_core.io.bag import decode_depth_m, decode_rgb, intrinsics_from_camera_info
 from neb_slam_core.io.bag import pose_from_msg as bag_pose_from_msg
-from neb_slam_core.types import Intrinsics, RgbdFrame
+from neb_slam_core.types import COLOUR_STAMP, DEPTH_STAMP, Intrinsics, RgbdFrame
 
 
 class InputError(Exception):
@@ -84,8 +85,11 @@ def frame_from_msgs(
     depth_scale: float,
     topics: tuple[str, str, str],
     index: int = 0,
+    frame_stamp: str = "depth",
 ) -> tuple[RgbdFrame, int]:
-    """One RGB-D frame from its colour and depth images and the latest camera info.
+    """One RGB-D frame from its colour and depth images and the latest camera info, stamped with the
+    ``frame_stamp`` image's stamp (:data:`~neb_slam_core.datasets.base.FRAME_STAMPS`; both stamps are in
+    its ``extras``).
 
     ``topics``: the colour, depth and camera-info topic names (for messages). Depth follows REP 118:
     NaN, +-Inf, 0 and negative readings are invalid (0 in the frame). Returns the frame and how many of
@@ -114,9 +118,9 @@ def frame_from_msgs(
     if not (depth > 0).any():
         raise InputError(depth_topic, "no valid depth pixel (all 0, NaN, Inf or negative)")
     extras = {"distortion": distortion} if any(distortion) else {}
-    return RgbdFrame(
-        index=index, stamp_ns=stamp_ns(rgb_msg), rgb=rgb, depth_m=depth, intrinsics=intr, extras=extras
-    ), n_not_finite
+    extras[COLOUR_STAMP], extras[DEPTH_STAMP] = stamp_ns(rgb_msg), stamp_ns(depth_msg)
+    stamp = frame_stamps(extras[COLOUR_STAMP], extras[DEPTH_STAMP], frame_stamp)
+    return RgbdFrame(index=index, stamp_ns=stamp, rgb=rgb, depth_m=depth, intrinsics=intr, extras=extras), n_not_finite
 
 
 def pose_from_msg(msg: PoseStamped, topic: str) -> np.ndarray:

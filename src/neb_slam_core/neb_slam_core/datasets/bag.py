@@ -48,7 +48,7 @@ from ..io.bag import (
     stamp_ns_of,
 )
 from ..io.bag_salvage import STORAGE_SUFFIXES, salvage_bag
-from ..types import Intrinsics, RgbdFrame
+from ..types import COLOUR_STAMP, DEPTH_STAMP, Intrinsics, RgbdFrame
 from .base import (
     Dataset,
     associate_unique,
@@ -497,6 +497,6 @@ class BagDataset(Dataset):
             raise UnreadableFrameError(self.root, f"topic {depth_topic}: {exc}") from None
         pose = None if self._poses is None or self._poses[i] is None else self._poses[i].copy()
         extras = {"distortion": self.distortion} if self.distortion else {}
-        extras["colour_stamp_ns"] = int(self._rgb_ix.stamp_ns[self._rgb_rows[i]])
-        extras["depth_stamp_ns"] = int(self._depth_ix.stamp_ns[self._depth_rows[i]])
+        extras[COLOUR_STAMP] = int(self._rgb_ix.stamp_ns[self._rgb_rows[i]])
+        extras[DEPTH_STAMP] = int(self._depth_ix.stamp_ns[self._depth_rows[i]])
         return RgbdFrame(rgb, depth, self.intrinsics, int(self._stamps_ns[i]), pose, extras=extras)

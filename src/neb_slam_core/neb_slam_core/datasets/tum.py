@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..io.trajectory import read_tum_trajectory, stamp_s_to_ns
-from ..types import Intrinsics, RgbdFrame
+from ..types import COLOUR_STAMP, DEPTH_STAMP, Intrinsics, RgbdFrame
 from .base import (
     Dataset,
     associate,
@@ -188,7 +188,7 @@ class TumDataset(Dataset):
         pose = None if self._poses is None or self._poses[i] is None else self._poses[i].copy()
         extras = {
             "distortion": self.distortion,
-            "colour_stamp_ns": int(self._colour_ns[i]),
-            "depth_stamp_ns": int(self._depth_ns[i]),
+            COLOUR_STAMP: int(self._colour_ns[i]),
+            DEPTH_STAMP: int(self._depth_ns[i]),
         }
         return RgbdFrame(rgb, depth, self.intrinsics, int(self._stamps_ns[i]), pose, extras=extras)

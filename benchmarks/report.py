@@ -104,6 +104,8 @@ COLUMNS: dict[str, list[Column]] = {
         C("config", "config"),
         C("frames", "frames"),
         C("ate_rmse_cm", "ATE cm"),
+        C("rpe_frame_trans_cm", "frame-to-frame cm"),
+        C("rpe_frame_rot_deg", "frame-to-frame deg"),
         C("s_per_frame", "s/frame"),
         C("track_s_per_frame", "tracking s/frame"),
         C("map_s_per_frame", "mapping s/frame"),
@@ -239,6 +241,12 @@ COLUMNS: dict[str, list[Column]] = {
     "map_updates": [
         C("demo", "demo: map_update whole float32 -> as sent; tracked pose difference", _updates),
         C("tum", "TUM fr1_xyz", _updates),
+    ],
+    "loop_truth": [
+        C("overrides", "overrides"),
+        C("frames", "frames"),
+        C("ate_cm", "ATE cm"),
+        C("bands", "per band of fit RMS (px): events, applied, mean gain / measurement error"),
     ],
     "soak": [
         C("bag", "bag", _name_only),

@@ -107,16 +107,13 @@ def stamp(benchmark: str, figures: dict, first_frame_s: float | None = None, now
 
 def repo_relative(value):
     """``value`` (figures: dicts, lists, strings) with every absolute path inside the repository written
-    relative to it and every other absolute path as its last component: a recorded result names no folder
-    of the machine it ran on."""
+    relative to it: a recorded result names no folder of the machine it ran on."""
     if isinstance(value, dict):
         return {k: repo_relative(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [repo_relative(v) for v in value]
     if isinstance(value, str) and value.startswith(str(REPO) + os.sep):
         return str(Path(value).relative_to(REPO))
-    if isinstance(value, str) and value.startswith(os.sep) and "\n" not in value and " " not in value:
-        return Path(value).name
     return value
 
 
@@ -149,7 +146,7 @@ def record(
     ``<results_dir>/<benchmark>-<YYYYmmdd-HHMMSS>.json`` (UTC; default folder ``benchmarks/results``) and,
     when given, to ``json_path`` (the same content). Returns the results file's path."""
     now = now or datetime.now(UTC)
-    stamped = {**repo_relative(figures), STAMP_KEY: repo_relative(stamp(benchmark, figures, first_frame_s, now))}
+    stamped = {**repo_relative(figures), STAMP_KEY: stamp(benchmark, figures, first_frame_s, now)}
     text = json.dumps(stamped, indent=2) + "\n"
     folder = Path(results_dir) if results_dir is not None else RESULTS
     folder.mkdir(parents=True, exist_ok=True)

@@ -69,6 +69,11 @@ class Sampler:
         from neb_slam_core.memory import deep_bytes
         from neb_slam_ros._node_main import request_stop
 
+        if len(self.frame_ms) >= self.frames:
+            # frames the node still takes while the stop takes effect (the replay goes on meanwhile, a
+            # frame per pose) are not part of the soak
+            request_stop()
+            return
         self.frame_ms.append(float(result.timings.total_ms))
         slam = self.node.slam
         n = slam.n_frames

@@ -68,12 +68,14 @@ def test_base_yaml_is_exactly_the_dataclass_defaults():
     assert load_config("base") == BASE
 
 
-def test_tum_preset_has_the_papers_tum_values():
+def test_tum_preset_has_the_papers_tum_values_and_ours_for_the_kinect():
     expected = replace(
         BASE,
         render=replace(BASE.render, truncation_m=0.05, sampling=replace(BASE.render.sampling, far_m=5.0)),
-        tracking=replace(BASE.tracking, lr=1e-2),
+        # the paper's learning rate; ours: 2048 pixels, colour at the depth image's time
+        tracking=replace(BASE.tracking, lr=1e-2, n_rays=2048, colour_timing=True),
         mapping=replace(BASE.mapping, iterations=20),
+        loop=replace(BASE.loop, max_fit_rms_px=1.0),  # ours: loop fits within 1 px
     )
     assert load_config("tum") == expected
 

@@ -63,14 +63,19 @@ def colour_shifted(frame, px: int):
     return dataclasses.replace(frame, rgb=rgb)
 
 
-def test_colour_two_pixels_off_depth_costs_at_most_a_fifth_of_the_ate(frames, full_run):
-    """The whole small sequence with every colour image 2 pixels off its depth map tracks every frame,
-    within 1.2x the ATE of the registered images (the same config and seeds)."""
-    aligned = evaluate_ate(full_run[0].trajectory(), ground_truth(frames)).rmse_cm
-    slam, results = run([colour_shifted(f, 2) for f in frames], load_config("ci"), frames[0].T_world_cam)
-    assert all(r.tracking_ok for r in results)
-    shifted = evaluate_ate(slam.trajectory(), ground_truth(frames)).rmse_cm
-    assert shifted <= 1.2 * aligned, (shifted, aligned)
+def test_colour_two_pixels_off_depth_costs_at_most_a_fifth_of_the_ate(frames):
+    """The first 30 frames of the small room with every colour image 2 pixels off its depth map track every
+    frame, within 1.2x the ATE of the registered images (the same config; the mean over three seeds: one
+    run's ATE on this scene moves by a third with the pixels drawn, both ways)."""
+    first = frames[:30]
+    aligned, shifted = [], []
+    for seed in (0, 1, 2):
+        cfg = load_config("ci", [f"seed={seed}"])
+        aligned.append(evaluate_ate(run(first, cfg, first[0].T_world_cam)[0].trajectory(), ground_truth(first)).rmse_cm)
+        slam, results = run([colour_shifted(f, 2) for f in first], cfg, first[0].T_world_cam)
+        assert all(r.tracking_ok for r in results)
+        shifted.append(evaluate_ate(slam.trajectory(), ground_truth(first)).rmse_cm)
+    assert np.mean(shifted) <= 1.2 * np.mean(aligned), (shifted, aligned)
 
 
 @pytest.fixture(scope="module")

@@ -29,24 +29,16 @@ from pathlib import Path
 
 import numpy as np
 from common import REPO, record
-from scipy.spatial.transform import Rotation
 
 from neb_slam_core.config_io import load_config
 from neb_slam_core.datasets import open_dataset
 from neb_slam_core.eval.trajectory_metrics import evaluate_ate
 from neb_slam_core.io.trajectory import Trajectory
 from neb_slam_core.loop import closer as closer_module
+from neb_slam_core.loop.correction import correction_size
 from neb_slam_core.slam import Slam
 
 DESK = REPO / ".cache" / "datasets" / "rgbd_dataset_freiburg1_desk"
-
-
-def distance(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """Position (cm) and rotation (degrees) between two camera poses."""
-    E = np.linalg.inv(T_true) @ T
-    return float(100 * np.linalg.norm(T[:3, 3] - T_true[:3, 3])), float(
-        np.degrees(Rotation.from_matrix(E[:3, :3]).magnitude())
-    )
 
 
 def main() -> None:
@@ -92,9 +84,9 @@ def main() -> None:
         loop_true = truth.get(kfs[event.loop_ids[0]].frame_index) if event is not None else None
         if event is not None and "fit" in fitted and T_true is not None and loop_true is not None:
             T_fit = fitted["fit"].T_world_cam
-            tracked, fit_err = distance(poses[keyframe_id], T_true), distance(T_fit, T_true)
+            tracked, fit_err = correction_size(T_true, poses[keyframe_id]), correction_size(T_true, T_fit)
             T_loop = poses[event.loop_ids[0]]
-            relative = distance(np.linalg.inv(T_loop) @ T_fit, np.linalg.inv(loop_true) @ T_true)
+            relative = correction_size(np.linalg.inv(loop_true) @ T_true, np.linalg.inv(T_loop) @ T_fit)
             events.append(
                 {
                     "frame": int(kfs[keyframe_id].frame_index),

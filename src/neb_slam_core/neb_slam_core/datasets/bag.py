@@ -380,7 +380,8 @@ class BagDataset(Dataset):
         pair = associate_unique(rgb_ix.stamp_ns, depth_ix.stamp_ns, int(round(self.sync_slop_s * 1e9)))
         keep = np.flatnonzero(pair >= 0)
         stamps = frame_stamps(rgb_ix.stamp_ns[keep], depth_ix.stamp_ns[pair[keep]], self.frame_stamp)
-        keep = keep[np.argsort(stamps, kind="stable")]
+        order = np.argsort(stamps, kind="stable")
+        keep, stamps = keep[order], stamps[order]
         n_rgb, n_depth = len(rgb_ix.stamp_ns), len(depth_ix.stamp_ns)
         unused_depth = n_depth - len(keep)
         why = (
@@ -400,7 +401,7 @@ class BagDataset(Dataset):
             )
         self._rgb_ix, self._depth_ix = rgb_ix, depth_ix
         self._rgb_rows, self._depth_rows = keep, pair[keep]
-        self._stamps_ns = frame_stamps(rgb_ix.stamp_ns[keep], depth_ix.stamp_ns[pair[keep]], self.frame_stamp)
+        self._stamps_ns = stamps
 
         # Each pose is used by at most one frame (the one nearest in time): a frame the bag gives no
         # pose must not borrow its neighbour's. Frames without one keep T_world_cam = None.

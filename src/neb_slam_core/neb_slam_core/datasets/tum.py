@@ -139,9 +139,9 @@ class TumDataset(Dataset):
         keep = np.flatnonzero(pair >= 0)
         warn_skipped(self.root, len(rgb_ns) - len(keep), len(rgb_ns), "colour frames with no depth within 0.02 s")
         stamps = frame_stamps(rgb_ns[keep], depth_ns[pair[keep]], frame_stamp)
-        keep = keep[np.argsort(stamps, kind="stable")]  # in the order of the chosen stamps
+        order = np.argsort(stamps, kind="stable")  # frames in the order of the chosen stamps
+        keep, self._stamps_ns = keep[order], stamps[order]
         self._colour_ns, self._depth_ns = rgb_ns[keep], depth_ns[pair[keep]]
-        self._stamps_ns = frame_stamps(self._colour_ns, self._depth_ns, frame_stamp)
         self._rgb = [rgb_names[i] for i in keep]
         self._depth = [depth_names[j] for j in pair[keep]]
 

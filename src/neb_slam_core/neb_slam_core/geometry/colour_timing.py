@@ -32,9 +32,12 @@ def colour_offset_ns(frame: RgbdFrame) -> int:
 def colour_at_depth_time(frame: RgbdFrame, M: np.ndarray) -> RgbdFrame:
     """``frame`` (pinhole) with its colour resampled to the depth image's time, ``M`` ``(4, 4)`` the
     camera's motion from the depth image's time to the colour image's (module docstring)."""
+    # float32, one image-sized array per axis, with the pixel coordinates as a row and a column that
+    # broadcast: it runs on every tracked frame, where geometry.rays.backproject_pixels' float64 (N, 3)
+    # points would cost several times as much
     K = frame.intrinsics
     h, w = frame.depth_m.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    u, v = np.arange(w, dtype=np.float32)[None, :], np.arange(h, dtype=np.float32)[:, None]
     z = frame.depth_m
     x, y = (u - np.float32(K.cx)) / np.float32(K.fx) * z, (v - np.float32(K.cy)) / np.float32(K.fy) * z
     # M^-1 X = R^T (X - t)

@@ -157,9 +157,14 @@ class Tracker:
         min_valid_rays: int,
     ) -> tuple[np.ndarray, PoseEvaluation, int, np.ndarray | None]:
         """At most ``iterations`` Levenberg-Marquardt steps from ``T`` on the pixels ``px`` with sample
-        depths ``z``, until a step moves less than ``stop_step_m``: the pose, its evaluation, the steps
-        and the Gauss-Newton matrix last built (at the pose, or at the one before the last accepted step
-        when that step was below ``stop_step_m``; None with too few valid rays)."""
+        depths ``z``: the pose, its evaluation, the steps evaluated and the Gauss-Newton matrix last built
+        (at the pose, or at the one before the last step when the stage ends at ``iterations``; None with
+        too few valid rays).
+
+        The stage stops once the step it proposes moves less than ``stop_step_m`` (a step of (omega, dt)
+        moves the camera by |dt| and points 1 m ahead by about |omega| m more). That step is neither
+        evaluated nor taken: the pose is converged to within it, and its evaluation would cost as much as
+        a step that counts (the parameter tolerance of trust-region solvers such as Ceres)."""
         c = self.cfg
         ev = evaluate_pose(block_map, px, T, z, self.render_cfg, ids, c.observed_only)
         if ev.n_valid_rays < min_valid_rays:
@@ -167,22 +172,21 @@ class Tracker:
         H, g = normal_equations(ev, block_map, ids, self.gradients)
         damping = c.gn_damping
         steps = 0
-        for steps in range(1, c.iterations + 1):
+        while steps < c.iterations:
             try:
                 step = damped_step(H, g, damping)
             except np.linalg.LinAlgError:
                 break
-            T_new = apply_step(T, step)
-            new = evaluate_pose(block_map, px, T_new, z, self.render_cfg, ids, c.observed_only)
-            accepted = new.n_valid_rays >= min_valid_rays and new.cost < ev.cost
-            if accepted:
-                T, ev = T_new, new
-                damping = max(damping / 3.0, 1e-7)
-            else:
-                damping *= 8.0
-            # a step of (omega, dt) moves the camera by |dt| and points 1 m ahead by about |omega| m more
             if np.linalg.norm(step[3:]) + np.linalg.norm(step[:3]) < stop_step_m:
                 break
-            if accepted and steps < c.iterations:
-                H, g = normal_equations(ev, block_map, ids, self.gradients)
+            steps += 1
+            T_new = apply_step(T, step)
+            new = evaluate_pose(block_map, px, T_new, z, self.render_cfg, ids, c.observed_only)
+            if new.n_valid_rays >= min_valid_rays and new.cost < ev.cost:
+                T, ev = T_new, new
+                damping = max(damping / 3.0, 1e-7)
+                if steps < c.iterations:
+                    H, g = normal_equations(ev, block_map, ids, self.gradients)
+            else:
+                damping *= 8.0
         return T, ev, steps, H

@@ -297,12 +297,12 @@ class BlockMap(nn.Module):
             i1 = np.clip(np.ceil((hi - corner) / vox).astype(int), 0, n)
             if np.any(i1 <= i0):
                 continue
-            axes = [torch.arange(int(a), int(b), device=dev) for a, b in zip(i0, i1, strict=True)]
-            idx = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
             grid = block.observed
-            idx = idx[~grid[idx[:, 0], idx[:, 1], idx[:, 2]]]  # a voxel once seen stays seen: test the rest
+            # a voxel once seen stays seen: only the unseen ones of the box are tested
+            idx = (~grid[i0[0] : i1[0], i0[1] : i1[1], i0[2] : i1[2]]).nonzero()
             if not len(idx):
                 continue
+            idx += torch.as_tensor(i0, device=dev)
             centres = block.min_corner.to(dev) + (idx.to(torch.float32) + 0.5) * vox
             cam = centres @ R_cw.T + t_cw
             zc = cam[:, 2]

@@ -177,6 +177,7 @@ def main() -> None:
     p.add_argument("--skip-offline", action="store_true", help="no offline reference")
     p.add_argument("--out", type=Path, help="folder of the run directories (default runs/live-<date-time>)")
     p.add_argument("--json", type=Path, help="a copy of the stamped figures (see benchmarks/results/)")
+    p.add_argument("--results-dir", type=Path, help="where the dated JSON goes (default benchmarks/results)")
     p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", help="config overrides of the live entries")
     args = p.parse_args()
     try:  # a bad key or value ends here, before any run, with the config's own message
@@ -222,7 +223,7 @@ def main() -> None:
             indent=2,
         )
     )
-    record("live", figures, args.json)
+    record("live", figures, args.json, args.results_dir)
 
 
 if __name__ == "__main__":

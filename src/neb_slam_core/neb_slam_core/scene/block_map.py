@@ -280,8 +280,8 @@ class BlockMap(nn.Module):
         lo, hi = depth_bounds(np.where(valid, depth + truncation_m, 0.0), k, T)  # the band's far side
         lo, hi = np.minimum(lo, T[:3, 3]), np.maximum(hi, T[:3, 3])
         dev = self.device
-        R_cw = torch.as_tensor(T[:3, :3].T, dtype=torch.float32, device=dev)
-        t_cw = torch.as_tensor(-T[:3, :3].T @ T[:3, 3], dtype=torch.float32, device=dev)
+        R_cw_np = T[:3, :3].T
+        t_cw = torch.as_tensor(-R_cw_np @ T[:3, 3], dtype=torch.float32, device=dev)
         # a voxel's footprint at the frame's median depth: a voxel counts as seen where any pixel of its
         # footprint saw through it (the deepest), so holes and depth edges of a real sensor do not
         # punch unobserved voxels into surfaces the frame saw
@@ -297,26 +297,34 @@ class BlockMap(nn.Module):
             i1 = np.clip(np.ceil((hi - corner) / vox).astype(int), 0, n)
             if np.any(i1 <= i0):
                 continue
-            grid = block.observed
-            # a voxel once seen stays seen: only the unseen ones of the box are tested
-            idx = (~grid[i0[0] : i1[0], i0[1] : i1[1], i0[2] : i1[2]]).nonzero()
-            if not len(idx):
+            # the box's record, a view: marking it marks the block's (a voxel once seen stays seen)
+            box = block.observed[i0[0] : i1[0], i0[1] : i1[1], i0[2] : i1[2]]
+            unseen = ~box
+            if not bool(unseen.any()):
                 continue
-            idx += torch.as_tensor(i0, device=dev)
-            centres = block.min_corner.to(dev) + (idx.to(torch.float32) + 0.5) * vox
-            cam = centres @ R_cw.T + t_cw
-            zc = cam[:, 2]
+            # the voxel centres' camera coordinates R^T (c - t) are a sum of one term per world axis, so the
+            # box's are three small tables broadcast together, not a matrix product per voxel
+            terms = [
+                torch.as_tensor(
+                    np.outer(corner[a] + (np.arange(i0[a], i1[a]) + 0.5) * vox, R_cw_np[:, a]),
+                    dtype=torch.float32,
+                    device=dev,
+                )
+                for a in range(3)
+            ]
+            cam = terms[0][:, None, None] + terms[1][None, :, None] + terms[2][None, None, :] + t_cw
+            zc = cam[..., 2]
             in_front = zc > 1e-6
             zs = torch.where(in_front, zc, torch.ones_like(zc))
-            px = torch.round(k.fx * cam[:, 0] / zs + k.cx).long()
-            py = torch.round(k.fy * cam[:, 1] / zs + k.cy).long()
-            inside = in_front & (px >= 0) & (px < depth.shape[1]) & (py >= 0) & (py < depth.shape[0])
-            d = torch.zeros_like(zc)
-            d[inside] = depth_t[py[inside], px[inside]]
+            px = torch.round(k.fx * cam[..., 0] / zs + k.cx)
+            py = torch.round(k.fy * cam[..., 1] / zs + k.cy)
+            h, w = depth.shape
+            inside = unseen & in_front & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+            pixel = py.clamp(0, h - 1).long() * w + px.clamp(0, w - 1).long()
+            d = depth_t.reshape(-1)[pixel]
             seen = inside & (d > 0) & (zc <= d + truncation_m + 0.5 * np.sqrt(3.0) * vox)
-            hit = idx[seen]
-            if len(hit):
-                grid[hit[:, 0], hit[:, 1], hit[:, 2]] = True
+            if bool(seen.any()):
+                box |= seen
                 grown.add(block.block_id)
         return grown
 

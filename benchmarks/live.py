@@ -31,6 +31,14 @@ Examples::
     .venv/bin/python benchmarks/live.py --bag bags/demo_scene_bag --config synthetic --offline-config synthetic
     .venv/bin/python benchmarks/live.py --only one_process cli_live --skip-offline
     .venv/bin/python benchmarks/live.py --only one_process --skip-offline --set mapping.iterations=10
+
+Whether applied loops hold up tracking (``slowest_over_median`` on a route that returns to its start): the
+noisy ``default`` synthetic scene at a tenth of its speed (its camera moves 1.5-1.8 m/s as recorded)::
+
+    .venv/bin/neb-slam synth .cache/scenes/default-noise --noise
+    .venv/bin/neb-slam convert auto .cache/scenes/default-noise .cache/bags/default-noise
+    .venv/bin/python benchmarks/live.py --bag .cache/bags/default-noise --rate 0.1 --only one_process \
+        --skip-offline --runs 3
 """
 
 from __future__ import annotations

@@ -248,9 +248,10 @@ class TrackingConfig:
 
     ``method``: ``gauss_newton`` (ours: Levenberg-Marquardt on the paper's objective, at most
     ``iterations`` steps, no learning rate; it starts with damping ``gn_damping`` times the Gauss-Newton
-    matrix' diagonal and stops once a step moves the camera, and points 1 m in front of it, by less
-    than ``gn_stop_step_m``) or ``adam`` (the paper: ``iterations`` Adam steps at ``lr``). Gauss-Newton
-    reaches in a few steps the pose that Adam approaches in tens (``benchmarks/tracking.py``).
+    matrix' diagonal and stops once the step it proposes would move the camera, and points 1 m in front
+    of it, by less than ``gn_stop_step_m``; that step is not taken) or ``adam`` (the paper:
+    ``iterations`` Adam steps at ``lr``). Gauss-Newton reaches in a few steps the pose that Adam
+    approaches in tens (``benchmarks/tracking.py``).
 
     ``motion_model``: the constant-velocity prediction (:meth:`neb_slam_core.slam.Frontend.predict`):
     ``frames`` (the paper's: by frame count) or ``stamps`` (by the stamps of the last two tracked frames,

@@ -159,6 +159,33 @@ def test_a_coarse_stage_of_all_the_rays_is_no_coarse_stage(fitted_small_map):
     assert np.array_equal(poses[0], poses[1])
 
 
+def test_a_proposed_step_below_the_stop_threshold_is_neither_evaluated_nor_taken(fitted_small_map, monkeypatch):
+    """From 1 cm and half a degree off, the first Levenberg-Marquardt step moves the camera by about that
+    much. With the stop threshold above it the stage ends at once: the start pose, no step counted, and the
+    objective evaluated only at the start. With the default threshold the same start is corrected."""
+    import neb_slam_core.tracking.tracker as tracker_module
+
+    fm = fitted_small_map
+    frame = fm.held_out[0]
+    T0 = perturbed(frame.T_world_cam, np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.5, 0.0]))
+    calls = []
+    evaluate = tracker_module.evaluate_pose
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(tracker_module, "evaluate_pose", counted)
+    stop_at_once = TrackingConfig(n_rays=512, iterations=6, method="gauss_newton", gn_stop_step_m=1.0)
+    result = Tracker(stop_at_once, fm.render, seed=0).track(fm.block_map, frame, T0)
+    assert np.array_equal(result.T_world_cam, T0) and result.iterations == 0 and len(calls) == 1
+    calls.clear()
+    default = replace(stop_at_once, gn_stop_step_m=TrackingConfig().gn_stop_step_m)
+    result = Tracker(default, fm.render, seed=0).track(fm.block_map, frame, T0)
+    assert result.iterations >= 1 and len(calls) == result.iterations + 1  # the start, then each step taken
+    assert pose_error(result.T_world_cam, frame.T_world_cam)[0] < 0.5 * pose_error(T0, frame.T_world_cam)[0]
+
+
 def test_the_coarse_stage_brings_a_far_start_closer_before_the_full_stage(fitted_small_map):
     """From 4 cm and 2 degrees off, the coarse stage (256 of 1024 rays) alone takes the pose to within a
     centimetre, so the stage on all rays starts inside its basin."""

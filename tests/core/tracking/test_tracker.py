@@ -16,6 +16,7 @@ from neb_slam_core.render.rays import sample_pixels
 from neb_slam_core.render.renderer import objective
 from neb_slam_core.render.sampling import sample_depths
 from neb_slam_core.scene.freeze import frozen
+from neb_slam_core.tracking import tracker as tracker_module
 from neb_slam_core.tracking.gauss_newton import apply_step, evaluate_pose, normal_equations
 from neb_slam_core.tracking.tracker import Tracker
 
@@ -163,8 +164,6 @@ def test_a_proposed_step_below_the_stop_threshold_is_neither_evaluated_nor_taken
     """From 1 cm and half a degree off, the first Levenberg-Marquardt step moves the camera by about that
     much. With the stop threshold above it the stage ends at once: the start pose, no step counted, and the
     objective evaluated only at the start. With the default threshold the same start is corrected."""
-    import neb_slam_core.tracking.tracker as tracker_module
-
     fm = fitted_small_map
     frame = fm.held_out[0]
     T0 = perturbed(frame.T_world_cam, np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.5, 0.0]))

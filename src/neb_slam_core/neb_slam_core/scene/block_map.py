@@ -280,15 +280,16 @@ class BlockMap(nn.Module):
         lo, hi = depth_bounds(np.where(valid, depth + truncation_m, 0.0), k, T)  # the band's far side
         lo, hi = np.minimum(lo, T[:3, 3]), np.maximum(hi, T[:3, 3])
         dev = self.device
-        R_cw_np = T[:3, :3].T
-        t_cw = torch.as_tensor(-R_cw_np @ T[:3, 3], dtype=torch.float32, device=dev)
+        R_cw = T[:3, :3].T
+        t_cw = torch.as_tensor(-R_cw @ T[:3, 3], dtype=torch.float32, device=dev)
         # a voxel's footprint at the frame's median depth: a voxel counts as seen where any pixel of its
         # footprint saw through it (the deepest), so holes and depth edges of a real sensor do not
         # punch unobserved voxels into surfaces the frame saw
         half = int(0.5 * k.fx * self.blocks[0].voxel_m / float(np.median(depth[valid])))
         if half > 0:  # the maximum over the square footprint: a grey dilation (OpenCV's is separable)
             depth = cv2.dilate(depth, np.ones((2 * half + 1, 2 * half + 1), np.uint8))
-        depth_t = torch.as_tensor(depth, device=dev)
+        h, w = depth.shape
+        depth_flat = torch.as_tensor(depth, device=dev).reshape(-1)
         grown = set()
         for block in self.blocks:
             n, vox = block.observed.shape[0], block.voxel_m
@@ -306,7 +307,7 @@ class BlockMap(nn.Module):
             # box's are three small tables broadcast together, not a matrix product per voxel
             terms = [
                 torch.as_tensor(
-                    np.outer(corner[a] + (np.arange(i0[a], i1[a]) + 0.5) * vox, R_cw_np[:, a]),
+                    np.outer(corner[a] + (np.arange(i0[a], i1[a]) + 0.5) * vox, R_cw[:, a]),
                     dtype=torch.float32,
                     device=dev,
                 )
@@ -318,10 +319,9 @@ class BlockMap(nn.Module):
             zs = torch.where(in_front, zc, torch.ones_like(zc))
             px = torch.round(k.fx * cam[..., 0] / zs + k.cx)
             py = torch.round(k.fy * cam[..., 1] / zs + k.cy)
-            h, w = depth.shape
             inside = unseen & in_front & (px >= 0) & (px < w) & (py >= 0) & (py < h)
             pixel = py.clamp(0, h - 1).long() * w + px.clamp(0, w - 1).long()
-            d = depth_t.reshape(-1)[pixel]
+            d = depth_flat[pixel]
             seen = inside & (d > 0) & (zc <= d + truncation_m + 0.5 * np.sqrt(3.0) * vox)
             if bool(seen.any()):
                 box |= seen

@@ -66,12 +66,19 @@ class BlockConfig:
     ``observed_voxel_m`` (ours; 0: no record): each block records which of its voxels of this edge some
     keyframe has seen (:meth:`~neb_slam_core.scene.block_map.BlockMap.mark_observed`), so that tracking
     can leave out space the map has never been fitted to (``tracking.observed_only``).
+
+    ``alloc_centre``: where a new block goes. ``mean``: the paper's, the mean of the points outside every
+    block. ``cover`` (ours): the same where that block leaves at most ``alloc_threshold`` of the frame's
+    points outside, else the best-covering cube of a mean shift over the outside points
+    (:func:`~neb_slam_core.scene.block_map.covering_centre`), so that outside points on two sides of
+    the mapped space get a block each instead of a stack of blocks between them.
     """
 
     edge_m: float = 5.0
     grid: HashGridConfig = HashGridConfig()
     alloc_threshold: float = 0.2
     alloc_n_points: int = 2000
+    alloc_centre: str = "cover"
     blend_m: float = 0.5
     observed_voxel_m: float = 0.05
 

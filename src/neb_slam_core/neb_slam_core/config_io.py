@@ -51,6 +51,7 @@ GRID_BACKENDS = ("auto", "fast", "reference")
 TRACKING_METHODS = ("adam", "gauss_newton")
 MOTION_MODELS = ("frames", "stamps")
 PREDICTIONS = ("motion", "features")
+ALLOC_CENTRES = ("mean", "cover")
 
 _PRESET_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]*")
 _DOTTED_KEY = re.compile(r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*")
@@ -395,6 +396,7 @@ RULES: dict[str, Any] = {
     "block.grid.init_scale": _NON_NEGATIVE,
     "block.alloc_threshold": _Num(0.0, 1.0, lo_open=True, hi_open=True),
     "block.alloc_n_points": _POSITIVE_INT,
+    "block.alloc_centre": _Choice(ALLOC_CENTRES),
     "block.blend_m": _NON_NEGATIVE,
     "block.observed_voxel_m": _NON_NEGATIVE,
     "one_blob.n_bins": _Int(2),

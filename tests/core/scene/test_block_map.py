@@ -4,7 +4,7 @@ import torch
 
 from neb_slam_core.config import BlockConfig, HashGridConfig
 from neb_slam_core.mapping.optimizer import MapOptimizer
-from neb_slam_core.scene.block_map import BlockMap
+from neb_slam_core.scene.block_map import BlockMap, covering_centre
 from neb_slam_core.types import Intrinsics
 
 SMALL_GRID = HashGridConfig(
@@ -82,6 +82,47 @@ def test_allocation_rule():
     alloc = m.allocate_if_needed(pts5, [0])
     assert abs(alloc.tau - 0.4) < 1e-9 and alloc.block is not None
     assert torch.allclose(alloc.block.centre, torch.tensor([10.0, 1.0, 3.0]))
+
+
+def _two_sides(n_left: int = 60, n_right: int = 40) -> torch.Tensor:
+    """Points at x = -4 (``n_left``) and x = +4 (``n_right``), spread 0.2 m in y and z."""
+    g = torch.Generator().manual_seed(0)
+    left = torch.tensor([-4.0, 0.0, 0.0]) + 0.2 * torch.rand(n_left, 3, generator=g)
+    right = torch.tensor([4.0, 0.0, 0.0]) + 0.2 * torch.rand(n_right, 3, generator=g)
+    return torch.cat([left, right])
+
+
+def test_mean_allocation_stacks_blocks_between_two_sides_and_cover_does_not():
+    # every point outside the mapped space, on two sides 8 m apart: the mean (x = -0.8) lies between
+    # them and a 5 m cube there reaches neither (it ends 1.7 m short of the left side)
+    pts = _two_sides()
+    mean_map = make_map(alloc_centre="mean")
+    for _ in range(3):  # the same view, frame after frame
+        mean_map.allocate_if_needed(pts, list(range(len(mean_map))))
+    assert len(mean_map) == 3
+    centres = mean_map.centres()
+    assert torch.allclose(centres, centres[0].expand_as(centres))  # three blocks in one place
+    assert mean_map.allocation_tau(pts, [0, 1, 2])[0] == 1.0  # covering nothing
+
+    cover_map = make_map(alloc_centre="cover")
+    first = cover_map.allocate_if_needed(pts, [])
+    # the mean shift climbs to the larger side: its block covers it, tau falls to 40 / 100
+    assert first.tau == 1.0 and torch.allclose(first.block.centre, pts[:60].mean(0))
+    second = cover_map.allocate_if_needed(pts, [0])
+    assert abs(second.tau - 0.4) < 1e-9 and torch.allclose(second.block.centre, pts[60:].mean(0))
+    assert cover_map.allocate_if_needed(pts, [0, 1]) == cover_map.allocate_if_needed(pts, [0, 1])
+    assert len(cover_map) == 2 and cover_map.allocation_tau(pts, [0, 1])[0] == 0.0
+
+
+def test_covering_centre_keeps_the_mean_where_its_block_leaves_little_outside():
+    pts = _two_sides(n_left=95, n_right=5)
+    start = pts.mean(0)
+    # 5 of 100 points outside the mean's cube: within a budget of 20, the paper's centre stays
+    assert (pts - start).abs().amax(-1).gt(2.5).sum() <= 5
+    assert torch.equal(covering_centre(pts, start, 2.5, may_leave=20.0), start)
+    # with no budget the centre moves to the 95 points' own mean, whose cube holds all of them
+    moved = covering_centre(pts, start, 2.5, may_leave=0.0)
+    assert torch.allclose(moved, pts[:95].mean(0))
 
 
 def test_adding_a_block_keeps_optimizer_state_of_existing_blocks():

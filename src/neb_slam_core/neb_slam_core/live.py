@@ -94,7 +94,7 @@ class LiveSlam:
             mapping = ProcessMapping()
         # a mapping process gets its own copy with the map's bytes; threads here need one made
         self._track_map = mapper_map if mapping is not None else copy.deepcopy(mapper_map)
-        self.frontend = Frontend(cfg, self._track_map, T_world_first)
+        self.frontend = Frontend(cfg, self._track_map, T_world_first, own_map=True)
         self.loops: list[LoopEvent] = []
         self.stats = LiveStats()
         self.errors: list[str] = []

@@ -235,11 +235,11 @@ class Frontend:
     recognition outside the frontend (in :class:`Slam`: the loop closer's keyframe database); the
     frontend only tracks from them, so it needs nothing of ``loop/``.
 
-    The frontend reads the map's observed-space records (``tracking.observed_only``) and never writes
-    them: the backend records a keyframe's view as it integrates the keyframe (:meth:`Backend.add_keyframe`),
-    in a map shared with the frontend (:class:`Slam`) or in its own, whose records then reach the
-    tracker's copy with the map update of that step (the live engine, the ROS ``mapper``). The space a
-    keyframe saw counts for tracking once the map has been fitted to it.
+    ``own_map``: ``block_map`` is the tracker's own copy, fed by a backend elsewhere (the live engine's
+    mapping thread, the ROS ``mapper``), so the frontend records the space each of its keyframes saw in
+    it at once (:meth:`~neb_slam_core.scene.block_map.BlockMap.mark_observed`), without waiting for the
+    backend's records to come back with a map update. Where frontend and backend share one map
+    (:class:`Slam`), the backend records it as it integrates the keyframe.
     """
 
     def __init__(
@@ -248,9 +248,11 @@ class Frontend:
         block_map: BlockMap,
         T_world_first: np.ndarray | None = None,
         relocaliser: Callable[[RgbdFrame], list[np.ndarray]] | None = None,
+        own_map: bool = False,
     ):
         self.cfg = cfg
         self.block_map = block_map
+        self.own_map = own_map
         self.rng = np.random.default_rng(cfg.seed)
         self.tracker = Tracker(cfg.tracking, cfg.render, seed=cfg.seed + 2)
         self.T_world_first = np.eye(4) if T_world_first is None else np.array(T_world_first, dtype=np.float64)
@@ -390,7 +392,7 @@ class Frontend:
             index % c.mapping.every == 0 or new_block is not None or self._keyframe_due(frame.stamp_ns)
         )
         is_keyframe = (ok or index == 0) and (index % c.keyframes.every == 0 or map_now or recovered)
-        keyframe_id = self._add_keyframe(T) if is_keyframe else None
+        keyframe_id = self._make_keyframe(frame, T) if is_keyframe else None
         self._record(frame.stamp_ns, T)
         timings.total_ms = 1e3 * (time.perf_counter() - t_start)
         result = StepResult(
@@ -518,7 +520,7 @@ class Frontend:
         t0 = time.perf_counter()
         new_block, tau = self._allocate(frame, T)
         timings = StepTimings(allocate_ms=1e3 * (time.perf_counter() - t0))
-        keyframe_id = self._add_keyframe(T)
+        keyframe_id = self._make_keyframe(frame, T)
         self._record(frame.stamp_ns, T)
         self._ok_streak = 1
         self._tracked = [0]
@@ -608,6 +610,12 @@ class Frontend:
             torch.as_tensor(pts, dtype=torch.float32, device=self.block_map.device), ids
         )
         return alloc.block, alloc.tau
+
+    def _make_keyframe(self, frame: RgbdFrame, T: np.ndarray) -> int:
+        """``frame`` at ``T`` becomes the next keyframe (its view recorded as observed with ``own_map``)."""
+        if self.own_map:
+            self.block_map.mark_observed(frame.depth_m, frame.intrinsics, T, self.cfg.render.truncation_m)
+        return self._add_keyframe(T)
 
     def _add_keyframe(self, T: np.ndarray) -> int:
         link = invert(self.keyframe_poses[-1]) @ T if self.keyframe_poses else np.eye(4)

@@ -243,7 +243,7 @@ class TrackerNode(NebNode):
 
     def _track(self, frame: RgbdFrame) -> None:
         if self.frontend is None:
-            self.frontend = Frontend(self.cfg, self.block_map, self._first_pose(frame.stamp_ns))
+            self.frontend = Frontend(self.cfg, self.block_map, self._first_pose(frame.stamp_ns), own_map=True)
         step = self.frontend.step(frame)
         r = step.result
         if r.frame_index == 0:

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from neb_slam_core.config import BlockConfig, HashGridConfig
 from neb_slam_core.mapping.optimizer import MapOptimizer
@@ -359,8 +360,12 @@ OBS_K = Intrinsics(2.0, 2.0, 1.6, 1.6, 4, 4)
 OBS_TR = 0.1
 
 
-def observed_map() -> BlockMap:
-    m = BlockMap(BlockConfig(edge_m=4.0, grid=SMALL_GRID, observed_voxel_m=1.0), grid_backend="reference", seed=3)
+#: mark_observed's two paths: torch (a map on the reference backend) and the C++ kernel (the fast one)
+OBSERVED_PATHS = ("reference", "fast")
+
+
+def observed_map(backend: str = "reference") -> BlockMap:
+    m = BlockMap(BlockConfig(edge_m=4.0, grid=SMALL_GRID, observed_voxel_m=1.0), grid_backend=backend, seed=3)
     m.add_block([0.0, 0.0, 0.0])
     return m
 
@@ -370,8 +375,11 @@ def observed_centres(m: BlockMap) -> set[tuple[float, float, float]]:
     return {tuple(float(v) for v in (-2.0 + (i + 0.5) * 1.0).tolist()) for i in idx}
 
 
-def test_a_keyframe_observes_the_voxels_in_its_view_up_to_its_surface():
-    m = observed_map()
+@pytest.mark.parametrize("backend", OBSERVED_PATHS)
+def test_a_keyframe_observes_the_voxels_in_its_view_up_to_its_surface(backend, request):
+    if backend == "fast":
+        request.getfixturevalue("fast_ext")
+    m = observed_map(backend)
     assert m.blocks[0].observed.shape == (4, 4, 4) and not m.blocks[0].observed.any()
     # surface 1.2 m away: a centre counts up to 1.2 + tr + half the voxel diagonal (0.87) = 2.17 m deep; a
     # voxel's footprint there (2 px x 1 m / 1.2 m = 1.7 px) is under two pixels: each centre is compared
@@ -383,20 +391,26 @@ def test_a_keyframe_observes_the_voxels_in_its_view_up_to_its_surface():
     assert m.mark_observed(np.full((4, 4), 1.2, np.float32), OBS_K, np.eye(4), OBS_TR) == set()  # nothing new
 
 
-def test_space_behind_the_surface_and_pixels_without_depth_stay_unobserved():
-    m = observed_map()
+@pytest.mark.parametrize("backend", OBSERVED_PATHS)
+def test_space_behind_the_surface_and_pixels_without_depth_stay_unobserved(backend, request):
+    if backend == "fast":
+        request.getfixturevalue("fast_ext")
+    m = observed_map(backend)
     depth = np.full((4, 4), 0.2, np.float32)  # the z = 1.5 centres lie behind 0.2 + 0.1 + 0.87
     assert m.mark_observed(depth, OBS_K, np.eye(4), OBS_TR) == {0}
     assert observed_centres(m) == {(-0.5, -0.5, 0.5)}
-    m = observed_map()
+    m = observed_map(backend)
     depth = np.full((4, 4), 1.2, np.float32)
     depth[2, 2] = 0.0  # the pixel of x = y = 0.5 at z = 1.5
     m.mark_observed(depth, OBS_K, np.eye(4), OBS_TR)
     assert len(observed_centres(m)) == 9 and (0.5, 0.5, 1.5) not in observed_centres(m)
 
 
-def test_a_moved_camera_observes_the_moved_voxels():
-    m = observed_map()
+@pytest.mark.parametrize("backend", OBSERVED_PATHS)
+def test_a_moved_camera_observes_the_moved_voxels(backend, request):
+    if backend == "fast":
+        request.getfixturevalue("fast_ext")
+    m = observed_map(backend)
     T = np.eye(4)
     T[:3, 3] = [1.0, 0.0, 0.0]  # one voxel to the right: every observed centre moves by +1 m in x
     m.mark_observed(np.full((4, 4), 1.2, np.float32), OBS_K, T, OBS_TR)
@@ -414,3 +428,28 @@ def test_observed_answers_by_voxel_and_everything_counts_without_a_record():
     without.add_block([0.0, 0.0, 0.0])
     assert without.blocks[0].voxel_m == 0.0
     assert without.observed(pts).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_observed_kernel_marks_the_voxels_of_the_torch_path(fast_ext, seed):
+    # a 5 m block of 5 cm voxels seen by a 120 x 160 camera at a random pose over a bumpy, holed surface,
+    # twice (the second view adds to the first): the two paths mark the same voxels, one for one
+    rng = np.random.default_rng(seed)
+    k = Intrinsics(fx=150.0, fy=150.0, cx=79.5, cy=59.5, width=160, height=120)
+    depth = (1.0 + 2.0 * rng.random() + 0.3 * rng.random((120, 160))).astype(np.float32)
+    depth[rng.random((120, 160)) < 0.1] = 0.0
+    maps = {}
+    for backend in OBSERVED_PATHS:
+        m = BlockMap(BlockConfig(edge_m=5.0, grid=SMALL_GRID, observed_voxel_m=0.05), grid_backend=backend, seed=3)
+        m.add_block([0.3, -0.2, 1.5])
+        m.add_block([2.0, 1.0, 4.0])
+        maps[backend] = m
+    for _ in range(2):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(0.3 * rng.standard_normal(3)).as_matrix()
+        T[:3, 3] = 0.5 * rng.standard_normal(3)
+        grown = {b: m.mark_observed(depth, k, T, 0.1) for b, m in maps.items()}
+        assert grown["fast"] == grown["reference"]
+        for ref, fast in zip(maps["reference"].blocks, maps["fast"].blocks):
+            assert torch.equal(ref.observed, fast.observed)
+    assert sum(int(b.observed.sum()) for b in maps["fast"].blocks) > 10_000  # the views saw something

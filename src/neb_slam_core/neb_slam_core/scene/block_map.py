@@ -18,6 +18,7 @@ from torch import nn
 from ..config import BlockConfig, DecoderConfig, OneBlobConfig
 from ..geometry.rays import depth_bounds
 from ..types import Intrinsics
+from . import _ext
 from .block import NeuralBlock
 from .decoders import Decoders
 from .hash_grid import encode_blended
@@ -288,8 +289,8 @@ class BlockMap(nn.Module):
         half = int(0.5 * k.fx * self.blocks[0].voxel_m / float(np.median(depth[valid])))
         if half > 0:  # the maximum over the square footprint: a grey dilation (OpenCV's is separable)
             depth = cv2.dilate(depth, np.ones((2 * half + 1, 2 * half + 1), np.uint8))
-        h, w = depth.shape
-        depth_flat = torch.as_tensor(depth, device=dev).reshape(-1)
+        depth_t = torch.as_tensor(np.ascontiguousarray(depth), device=dev)
+        kernels = self._observed_kernels()
         grown = set()
         for block in self.blocks:
             n, vox = block.observed.shape[0], block.voxel_m
@@ -297,11 +298,6 @@ class BlockMap(nn.Module):
             i0 = np.clip(np.floor((lo - corner) / vox).astype(int), 0, n)
             i1 = np.clip(np.ceil((hi - corner) / vox).astype(int), 0, n)
             if np.any(i1 <= i0):
-                continue
-            # the box's record, a view: marking it marks the block's (a voxel once seen stays seen)
-            box = block.observed[i0[0] : i1[0], i0[1] : i1[1], i0[2] : i1[2]]
-            unseen = ~box
-            if not bool(unseen.any()):
                 continue
             # the voxel centres' camera coordinates R^T (c - t) are a sum of one term per world axis, so the
             # box's are three small tables broadcast together, not a matrix product per voxel
@@ -313,20 +309,26 @@ class BlockMap(nn.Module):
                 )
                 for a in range(3)
             ]
-            cam = terms[0][:, None, None] + terms[1][None, :, None] + terms[2][None, None, :] + t_cw
-            zc = cam[..., 2]
-            in_front = zc > 1e-6
-            zs = torch.where(in_front, zc, torch.ones_like(zc))
-            px = torch.round(k.fx * cam[..., 0] / zs + k.cx)
-            py = torch.round(k.fy * cam[..., 1] / zs + k.cy)
-            inside = unseen & in_front & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-            pixel = py.clamp(0, h - 1).long() * w + px.clamp(0, w - 1).long()
-            d = depth_flat[pixel]
-            seen = inside & (d > 0) & (zc <= d + truncation_m + 0.5 * np.sqrt(3.0) * vox)
-            if bool(seen.any()):
-                box |= seen
+            half_diagonal = 0.5 * np.sqrt(3.0) * vox
+            if kernels is not None:
+                box = torch.as_tensor(np.concatenate([i0, i1]), dtype=torch.int64)
+                grew = kernels.mark_observed_box(
+                    block.observed, box, *terms, t_cw, depth_t, k.fx, k.fy, k.cx, k.cy, truncation_m, half_diagonal
+                )
+            else:
+                grew = _mark_box(block.observed, i0, i1, terms, t_cw, depth_t, k, truncation_m, half_diagonal)
+            if grew:
                 grown.add(block.block_id)
         return grown
+
+    def _observed_kernels(self):
+        """The C++ kernels for :meth:`mark_observed` where the map runs the fast path (CPU, a backend other
+        than ``reference``, the kernels available), else None (the torch path)."""
+        if self.grid_backend == "reference" or self.device.type != "cpu":
+            return None
+        if self.grid_backend == "auto" and _ext.unavailable_reason() is not None:
+            return None
+        return _ext.load_map_kernels()
 
     def observed(self, points_world: torch.Tensor, block_ids: list[int] | None = None) -> torch.Tensor:
         """``(N,)`` bool: the point lies in an observed voxel (:meth:`mark_observed`) of one of the blocks
@@ -380,6 +382,43 @@ class BlockMap(nn.Module):
     def param_mb(self) -> float:
         """Parameter size in MB (10^6 bytes): blocks x per-block grid + decoders."""
         return (self.grid_param_bytes() + self.decoder_param_bytes()) / 1e6
+
+
+def _mark_box(
+    observed: torch.Tensor,
+    i0: np.ndarray,
+    i1: np.ndarray,
+    terms: list[torch.Tensor],
+    t_cw: torch.Tensor,
+    depth: torch.Tensor,
+    k: Intrinsics,
+    truncation_m: float,
+    half_diagonal: float,
+) -> bool:
+    """The torch path of :meth:`BlockMap.mark_observed` for one block: mark the voxels of the box
+    ``[i0, i1)`` of ``observed`` that the depth image ``depth`` (H, W) saw, from the per-axis tables
+    ``terms`` of the voxel centres' camera coordinates and ``t_cw``; whether any was new. The C++ kernel
+    (``csrc/observed_kernels.h``) does the same arithmetic in the same order."""
+    # the box's record, a view: marking it marks the block's (a voxel once seen stays seen)
+    box = observed[i0[0] : i1[0], i0[1] : i1[1], i0[2] : i1[2]]
+    unseen = ~box
+    if not bool(unseen.any()):
+        return False
+    h, w = depth.shape
+    cam = terms[0][:, None, None] + terms[1][None, :, None] + terms[2][None, None, :] + t_cw
+    zc = cam[..., 2]
+    in_front = zc > 1e-6
+    zs = torch.where(in_front, zc, torch.ones_like(zc))
+    px = torch.round(k.fx * cam[..., 0] / zs + k.cx)
+    py = torch.round(k.fy * cam[..., 1] / zs + k.cy)
+    inside = unseen & in_front & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+    pixel = py.clamp(0, h - 1).long() * w + px.clamp(0, w - 1).long()
+    d = depth.reshape(-1)[pixel]
+    seen = inside & (d > 0) & (zc <= d + truncation_m + half_diagonal)
+    if not bool(seen.any()):
+        return False
+    box |= seen
+    return True
 
 
 def covering_centre(points: torch.Tensor, start: torch.Tensor, half_edge_m: float, may_leave: float) -> torch.Tensor:

@@ -1,6 +1,7 @@
 // The CPU kernels of the neural block map as one Python module, neb_slam_core.scene._map_kernels: the
 // multi-resolution hash encoding (hash_grid_kernels.h), the one-blob encoding (one_blob_kernels.h) and the
-// decoders' forward pass (decoder_kernels.h); read those files' headers for the maths, the layout and the
+// decoders' forward pass (decoder_kernels.h), and the marking of a block's observed space
+// (observed_kernels.h); read those files' headers for the maths, the layout and the
 // work split. Built when the package is installed (setup.py: a torch CppExtension); neb_slam_core/scene/_ext.py
 // compiles it on first use (torch.utils.cpp_extension.load) only when that build is missing or was made
 // from other sources, flags, torch or CPU (the build key below).
@@ -22,6 +23,7 @@
 
 #include "hash_grid_kernels.h"
 #include "decoder_kernels.h"
+#include "observed_kernels.h"
 #include "one_blob_kernels.h"
 
 // The hash of the sources, flags, torch and Python versions and CPU the module was built for
@@ -354,8 +356,37 @@ std::tuple<Tensor, Tensor, Tensor, Tensor> decoder_forward_tangents(const Tensor
 
 }  // namespace
 
+// Marks the voxels of observed (n, n, n) bool in the box [box[0:3], box[3:6]) that a depth image saw
+// (observed_kernels.h): a, b, c the per-axis tables of camera coordinates (box length, 3), t (3,), all
+// float32; depth (H, W) float32. Returns whether any voxel was newly marked.
+bool mark_observed_box(Tensor observed, const Tensor& box, const Tensor& a, const Tensor& b, const Tensor& c,
+                       const Tensor& t, const Tensor& depth, double fx, double fy, double cx, double cy,
+                       double truncation, double half_diagonal) {
+  constexpr const char* fn = "mark_observed_box";
+  check_tensor(observed, fn, "observed", at::kBool, {kAny, kAny, kAny});
+  const int64_t n = observed.size(0);
+  TORCH_CHECK(observed.size(1) == n && observed.size(2) == n, fn, ": observed must be a cube (n, n, n), got ",
+              observed.sizes());
+  check_tensor(box, fn, "box", at::kLong, {6});
+  const int64_t* i = box.data_ptr<int64_t>();
+  for (int axis = 0; axis < 3; ++axis) {
+    TORCH_CHECK(0 <= i[axis] && i[axis] < i[axis + 3] && i[axis + 3] <= n, fn, ": box axis ", axis, " [",
+                i[axis], ", ", i[axis + 3], ") is empty or outside [0, ", n, ")");
+  }
+  check_tensor(a, fn, "a", at::kFloat, {i[3] - i[0], 3});
+  check_tensor(b, fn, "b", at::kFloat, {i[4] - i[1], 3});
+  check_tensor(c, fn, "c", at::kFloat, {i[5] - i[2], 3});
+  check_tensor(t, fn, "t", at::kFloat, {3});
+  check_tensor(depth, fn, "depth", at::kFloat, {kAny, kAny});
+  const neb_observed::Camera cam{float(fx), float(fy), float(cx), float(cy), depth.size(1), depth.size(0)};
+  return neb_observed::mark_box(reinterpret_cast<uint8_t*>(observed.data_ptr<bool>()), n, i, i + 3,
+                                a.data_ptr<float>(), b.data_ptr<float>(), c.data_ptr<float>(), t.data_ptr<float>(),
+                                depth.data_ptr<float>(), cam, float(truncation), float(half_diagonal),
+                                at::get_num_threads());
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "NeB-SLAM map kernels (CPU, OpenMP): hash-grid and one-blob encodings, decoders";
+  m.doc() = "NeB-SLAM map kernels (CPU, OpenMP): hash-grid and one-blob encodings, decoders, observed space";
   m.attr("build_key") = NEB_STRINGIFY(NEB_MAP_KERNELS_BUILD_KEY);
   const auto no_gil = py::call_guard<py::gil_scoped_release>();
   m.def("hash_grid_forward", &hash_grid_forward, "hash encoding: x (n, 3) -> (n, L*F)", py::arg("x"),
@@ -378,4 +409,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("decoder_forward_tangents", &decoder_forward_tangents,
         "both decoders and their derivatives along 3 tangents per point (no autograd): (sdf, rgb, d_sdf, d_rgb)",
         py::arg("blob"), py::arg("feat"), py::arg("blob_slopes"), py::arg("d_feat"), py::arg("weights"), no_gil);
+  m.def("mark_observed_box", &mark_observed_box,
+        "mark the voxels of a block's observed-space box that a depth image saw: whether any was new",
+        py::arg("observed"), py::arg("box"), py::arg("a"), py::arg("b"), py::arg("c"), py::arg("t"), py::arg("depth"),
+        py::arg("fx"), py::arg("fy"), py::arg("cx"), py::arg("cy"), py::arg("truncation"), py::arg("half_diagonal"),
+        no_gil);
 }

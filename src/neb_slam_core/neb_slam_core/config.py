@@ -68,10 +68,10 @@ class BlockConfig:
     can leave out space the map has never been fitted to (``tracking.observed_only``).
 
     ``alloc_centre``: where a new block goes. ``mean``: the paper's, the mean of the points outside every
-    block. ``cover`` (ours): the same where that block leaves at most ``alloc_threshold`` of the frame's
-    points outside, else the best-covering cube of a mean shift over the outside points
-    (:func:`~neb_slam_core.scene.block_map.covering_centre`), so that outside points on two sides of
-    the mapped space get a block each instead of a stack of blocks between them.
+    block. ``cover`` (ours): the same where its cube holds every outside point, else the cube of a mean
+    shift over the outside points that holds the most (:func:`~neb_slam_core.scene.block_map.covering_centre`),
+    so that outside points on two sides of the mapped space get a block each instead of blocks stacked
+    between them.
     """
 
     edge_m: float = 5.0

@@ -115,15 +115,33 @@ def test_mean_allocation_stacks_blocks_between_two_sides_and_cover_does_not():
     assert len(cover_map) == 2 and cover_map.allocation_tau(pts, [0, 1])[0] == 0.0
 
 
-def test_covering_centre_keeps_the_mean_where_its_block_leaves_little_outside():
+def test_covering_centre_keeps_the_mean_where_no_cube_holds_more():
+    # 95 points at x = -4 and 5 at x = +4: the mean (x = -3.5) holds the 95, as does any shift
     pts = _two_sides(n_left=95, n_right=5)
     start = pts.mean(0)
-    # 5 of 100 points outside the mean's cube: within a budget of 20, the paper's centre stays
-    assert (pts - start).abs().amax(-1).gt(2.5).sum() <= 5
-    assert torch.equal(covering_centre(pts, start, 2.5, may_leave=20.0), start)
-    # with no budget the centre moves to the 95 points' own mean, whose cube holds all of them
-    moved = covering_centre(pts, start, 2.5, may_leave=0.0)
-    assert torch.allclose(moved, pts[:95].mean(0))
+    assert torch.equal(covering_centre(pts, start, 2.5), start)
+    # one region of new space: the mean's cube holds every point
+    one = pts[:95]
+    assert torch.equal(covering_centre(one, one.mean(0), 2.5), one.mean(0))
+    # 70 / 30: the mean (x = -1.6) holds the 70 left, the mean shift climbs to their own mean, which holds
+    # the same 70: the paper's centre stays
+    pts = _two_sides(n_left=70, n_right=30)
+    assert torch.equal(covering_centre(pts, pts.mean(0), 2.5), pts.mean(0))
+
+
+def test_covering_centre_moves_next_to_an_overlap_onto_the_larger_side():
+    # 60 points spread over x in [2.6, 4.6] and 40 over x in [-4.6, -2.6]: the mean (x = 0.8) holds only
+    # the points below x = 3.3; the mean shift climbs onto the 60, whose cube holds them all
+    g = torch.Generator().manual_seed(1)
+    right = torch.tensor([2.6, 0.0, 0.0]) + torch.rand(60, 3, generator=g) * torch.tensor([2.0, 0.2, 0.2])
+    left = torch.tensor([-4.6, 0.0, 0.0]) + torch.rand(40, 3, generator=g) * torch.tensor([2.0, 0.2, 0.2])
+    pts = torch.cat([right, left])
+    start = pts.mean(0)
+    held = int(((pts - start).abs().amax(-1) <= 2.5).sum())
+    assert 0 < held < 60
+    moved = covering_centre(pts, start, 2.5)
+    assert int(((pts - moved).abs().amax(-1) <= 2.5).sum()) == 60
+    assert torch.allclose(moved, right.mean(0))
 
 
 def test_adding_a_block_keeps_optimizer_state_of_existing_blocks():

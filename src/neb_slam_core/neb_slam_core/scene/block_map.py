@@ -360,15 +360,15 @@ class BlockMap(nn.Module):
 
     def allocate_if_needed(self, points_world: torch.Tensor, block_ids: list[int]) -> Allocation:
         """The paper's rule: when tau > threshold, add a block centred at the mean of the outside points;
-        with ``block.alloc_centre`` ``cover``, moved by :func:`covering_centre` where that block would
-        leave more than the threshold outside."""
+        with ``block.alloc_centre`` ``cover``, moved by :func:`covering_centre` where another cube covers
+        more of them."""
         tau, outside = self.allocation_tau(points_world, block_ids)
         cfg = self.block_cfg
         if tau <= cfg.alloc_threshold or outside.shape[0] == 0:
             return Allocation(tau, None)
         centre = outside.mean(dim=0)
         if cfg.alloc_centre == "cover":
-            centre = covering_centre(outside, centre, 0.5 * cfg.edge_m, cfg.alloc_threshold * points_world.shape[0])
+            centre = covering_centre(outside, centre, 0.5 * cfg.edge_m)
         return Allocation(tau, self.add_block(centre.detach()))
 
     # ------------------------------------------------------------------ sizes
@@ -421,33 +421,35 @@ def _mark_box(
     return True
 
 
-def covering_centre(points: torch.Tensor, start: torch.Tensor, half_edge_m: float, may_leave: float) -> torch.Tensor:
+def covering_centre(points: torch.Tensor, start: torch.Tensor, half_edge_m: float) -> torch.Tensor:
     """The centre of a cube of half-edge ``half_edge_m`` for a new block over ``points`` ``(K, 3)`` (the
-    points outside every block): ``start`` (the paper's mean) when its cube leaves at most ``may_leave``
-    of them outside, else the best-covering centre of a mean shift from it.
+    points outside every block): of ``start`` (the paper's mean) and the steps of a mean shift from it,
+    the one whose cube holds the most points; ``start`` where none holds more.
 
-    Where the outside points lie on two sides of the mapped space (a camera in a corner looking past the
-    blocks both ways) their mean falls between them, its block covers little of either side, the next
-    frame is still above the threshold and allocates again between them: a stack of nearly co-located
-    blocks, each multiplying the encoding work of the points it shares. A mean shift with the block's
-    cube as its window (each step: the mean of the points inside the cube) climbs to one side's densest
-    cube; the next frame allocates for the other side if it still needs a block."""
+    Where the outside points lie on two sides of the mapped space (a camera in a room's corner looking
+    past the blocks both ways), their mean falls between them, next to the blocks there: its block covers
+    little of either side and overlaps the blocks beside it (every point in an overlap is encoded once
+    per block), and the next frames allocate again between the sides. A mean shift with the block's cube
+    as its window (each step: the mean of the points inside the cube) climbs to one side's densest cube;
+    the next frame allocates for the other side if it still needs a block. Where the mean's cube holds
+    every outside point (one region of new space) the paper's centre stays."""
 
-    def inside(c: torch.Tensor) -> torch.Tensor:
-        return (points - c).abs().amax(dim=-1) <= half_edge_m
+    def count(c: torch.Tensor) -> int:
+        return int(((points - c).abs().amax(dim=-1) <= half_edge_m).sum())
 
-    best, best_n = start, int(inside(start).sum())
-    if points.shape[0] - best_n <= may_leave:
+    n_start = count(start)
+    if n_start == points.shape[0]:
         return start
+    best, best_n = start, n_start
     centre = start
     for _ in range(20):  # a flat-window mean shift converges in a few steps
-        mask = inside(centre)
+        mask = (points - centre).abs().amax(dim=-1) <= half_edge_m
         if not mask.any():  # the window holds no point: restart at the nearest one
             mask = torch.zeros_like(mask)
             mask[(points - centre).abs().amax(dim=-1).argmin()] = True
         shifted = points[mask].mean(dim=0)
-        n = int(inside(shifted).sum())
-        if n >= best_n:  # on a tie, the later (more central) step
+        n = count(shifted)
+        if n > n_start and n >= best_n:  # on a tie between steps, the later (more central) one
             best, best_n = shifted, n
         if torch.equal(shifted, centre):
             break

@@ -16,7 +16,8 @@ FRAME_NS = 33_333_333
 
 @pytest.fixture(scope="module")
 def route():
-    """Frames 0, 1 and 9 of the 'default' synthetic route (160x120), rendered, with their poses."""
+    """Frames 0, 1, 9, 18, 27 and 36 of the 'default' synthetic route (160x120), rendered, with their
+    poses."""
     from neb_slam_core.synth.generate import build_sequence, resolve_spec
     from neb_slam_core.synth.render import Renderer
 
@@ -26,7 +27,7 @@ def route():
     renderer = Renderer.for_scene(seq.scene, intr)
     poses = seq.trajectory.poses
     frames = {}
-    for i in (0, 1, 9):
+    for i in (0, 1, 9, 18, 27, 36):
         view = renderer.render(poses[i])
         frames[i] = RgbdFrame(view.rgb, view.depth_m, intr, i * FRAME_NS, T_world_cam=poses[i])
     return frames
@@ -60,3 +61,24 @@ def test_without_verified_matches_or_with_motion_the_motion_model_predicts(route
         assert (features is None) == (prediction == "motion")
         np.testing.assert_array_equal(fe.prediction(FRAME_NS, features), fe.predict(FRAME_NS))
         assert fe.describe(route[1]) is None if prediction == "motion" else len(fe.describe(route[1]).features) > 100
+
+
+def test_while_tracking_fails_the_matches_chain_from_failed_frame_to_failed_frame(route, monkeypatch):
+    """Frames 9, 18 and 27 fail (as in a pan into space the map has not seen): each gets its pose from
+    its matches with the frame before; frame 36 no longer matches frame 0, the last tracked one, but
+    matches 27, and lands within 3 cm of the camera, where the motion model, which forgets the velocity
+    at a failure, stays at frame 0's pose, over half a metre away."""
+    cfg = load_config("ci", ["tracking.prediction=features"])
+    fe = Frontend(cfg, new_block_map(cfg), route[0].T_world_cam)
+    fe.step(route[0])
+    monkeypatch.setattr(fe, "_tracking_ok", lambda tracked, record=True: (False, "failed (test)"))
+    for i in (9, 18, 27):
+        step = fe.step(route[i])
+        assert not step.result.tracking_ok and fe.lost
+        assert _error_m(step.result.T_world_cam, route[i].T_world_cam) < 0.03 * i / 9
+    frame = route[36]
+    features = fe.describe(frame)
+    assert fe._motion.relative_pose(features, fe.describe(route[0])) is None  # out of frame 0's sight
+    chained = _error_m(fe.prediction(frame.stamp_ns, features), frame.T_world_cam)
+    frozen = _error_m(fe.predict(frame.stamp_ns), frame.T_world_cam)
+    assert chained < 0.03 and frozen > 0.5, (chained, frozen)

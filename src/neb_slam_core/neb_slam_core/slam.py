@@ -269,9 +269,11 @@ class Frontend:
         #: the last frame failed tracking and none has passed since
         self.lost = False
         # tracking.prediction features: the last tracked frame's index and features, which the next
-        # frame is matched against
+        # frame is matched against, and while tracking fails, the last failed frame whose pose came from
+        # verified matches (the chain of matches through the loss, see prediction())
         self._motion = FeatureMotion(cfg.loop) if cfg.tracking.prediction == "features" else None
         self._reference: tuple[int, FrameFeatures] | None = None
+        self._chained: tuple[int, FrameFeatures] | None = None
 
     # ------------------------------------------------------------------ poses
 
@@ -357,7 +359,8 @@ class Frontend:
         t0 = time.perf_counter()
         frame = self._colour_at_depth_time(frame)
         features = self.describe(frame)
-        T_pred = self.prediction(frame.stamp_ns, features)
+        T_matched = self._matched_pose(features)
+        T_pred = T_matched if T_matched is not None else self.predict(frame.stamp_ns)
         tracked = self.tracker.track(self.block_map, frame, T_pred)
         if self.cfg.tracking.relocalise and (self.lost or not self._passes(tracked)):
             tracked = self._relocalise(frame, T_pred, tracked)
@@ -373,7 +376,9 @@ class Frontend:
         else:
             self._tracked = self._tracked[-1:]  # the motion before the loss is stale
         if ok and features is not None:
-            self._reference = (index, features)
+            self._reference, self._chained = (index, features), None
+        elif T_matched is not None:  # failed, at a pose from verified matches: the next link of the chain
+            self._chained = (index, features)
         T = tracked.T_world_cam if ok else T_pred
 
         # allocate (only from a trusted pose: a wrong one would put a block in the wrong place)
@@ -498,18 +503,29 @@ class Frontend:
 
     def prediction(self, stamp_ns: int, features: FrameFeatures | None = None) -> np.ndarray:
         """The pose tracking starts from for the next frame, stamped ``stamp_ns``, with ``features`` its
-        :meth:`describe`. ``tracking.prediction`` ``features``: the last tracked frame's (corrected) pose
-        moved by the relative pose of the two frames' ORB matches
-        (:class:`~neb_slam_core.loop.motion.FeatureMotion`), where the geometric check accepts the pair;
-        otherwise, and with ``motion``, the motion model's :meth:`predict`. The reference stays the last
-        tracked frame while tracking fails, so a frame after a loss is matched against the last good
-        view."""
-        if features is not None and self._reference is not None:
-            ref_index, ref_features = self._reference
+        :meth:`describe`: :meth:`_matched_pose` with ``tracking.prediction`` ``features`` where the matches
+        verify; otherwise, and with ``motion``, the motion model's :meth:`predict`."""
+        T = self._matched_pose(features)
+        return T if T is not None else self.predict(stamp_ns)
+
+    def _matched_pose(self, features: FrameFeatures | None) -> np.ndarray | None:
+        """The pose of the frame described by ``features`` from its ORB matches
+        (:class:`~neb_slam_core.loop.motion.FeatureMotion`, where the geometric check accepts the pair):
+        the last tracked frame's (corrected) pose moved by the two frames' relative pose. While tracking
+        fails, a frame that no longer matches the last tracked one is matched against the last failed
+        frame that got its pose this way, so the poses of a loss follow the camera from match to match
+        (a pan into space the map has not seen), and the frame that passes again starts near where the
+        camera is. None without features or verified matches."""
+        if features is None:
+            return None
+        for reference in (self._reference, self._chained):
+            if reference is None:
+                continue
+            ref_index, ref_features = reference
             T_ref_cur = self._motion.relative_pose(features, ref_features)
             if T_ref_cur is not None:
                 return orthonormalize(self.pose_of(ref_index) @ T_ref_cur)
-        return self.predict(stamp_ns)
+        return None
 
     # ------------------------------------------------------------------ steps
 

@@ -103,6 +103,29 @@ def test_a_fast_turn_shortens_the_gap_to_max_turn_deg():
     assert fe.next_frame(stamps) == 29
 
 
+def test_after_a_short_interval_the_gap_grows_at_most_max_gap_growth_times():
+    ms = 1_000_000
+    stamps = [(200 + 10 * k) * ms for k in range(1, 31)]  # frames every 10 ms after the last processed one
+    for interval_ms, growth, expected_gap_ms in ((30, 2.0, 60), (100, 2.0, 200), (30, 0.0, 300), (200, 2.0, 300)):
+        cfg = load_config(
+            "ci",
+            overrides=[
+                "tracking.motion_model=stamps",
+                "live.max_gap_s=0.3",
+                "live.max_turn_deg=3",
+                f"live.max_gap_growth={growth}",
+            ],
+        )
+        fe = Frontend(cfg, new_block_map(cfg), np.eye(4))
+        fe.keyframe_poses = [np.eye(4)]
+        # a slow turn (0.1 degrees), which alone would allow max_gap_s (3 degrees take seconds)
+        slow = screw(np.radians(0.1), 0.001)
+        fe._frames = [_FramePose((200 - interval_ms) * ms, 0, np.eye(4)), _FramePose(200 * ms, 0, slow)]
+        fe._tracked = [0, 1]
+        # twice the last interval: 60 ms after 30, 200 after 100; off (0) or beyond max_gap_s: 300 ms
+        assert fe.next_frame(stamps) == expected_gap_ms // 10 - 1, (interval_ms, growth)
+
+
 @pytest.fixture(scope="module")
 def frames(small_scene):
     ds = open_dataset(small_scene)

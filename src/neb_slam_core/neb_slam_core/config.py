@@ -434,7 +434,12 @@ class LiveConfig:
     (the first map) the engine catches up in steps instead of jumping. ``max_turn_deg``: nor further
     than the camera turns by this at the rate between the last two tracked frames (0: no bound):
     feature matches and the tracker's basin span a few degrees, so in a fast turn the engine takes
-    frames closer together, and catches up from the queued frames once the turn slows. ``background_nice``: the mapping
+    frames closer together, and catches up from the queued frames once the turn slows. ``max_gap_growth``:
+    nor more than this many times the interval between the last two tracked frames after the last one
+    (0: no bound): that interval measures the turn rate ``max_turn_deg`` extrapolates, a short one
+    measures it poorly (a fraction of a degree against the tracker's noise), and a hand-held pan
+    speeds up within a fraction of a second, so after a fast turn the engine catches up in growing
+    steps, each measuring the rate anew. ``background_nice``: the mapping
     and loop threads (and the ROS ``mapper`` and ``loop_closer`` nodes' engine threads) run this much
     nicer than tracking (0: as nice as it), so that tracking keeps a core when all are busy
     (:func:`neb_slam_core.engine_process.lower_thread_priority`). ``mapping_process``: mapping and loop
@@ -451,6 +456,7 @@ class LiveConfig:
     torch_threads: int = 0
     max_gap_s: float = 0.0
     max_turn_deg: float = 0.0
+    max_gap_growth: float = 0.0
     background_nice: int = 0
     mapping_process: bool = True
     update_tolerance: float = 0.0

@@ -485,6 +485,7 @@ RULES: dict[str, Any] = {
     "live.torch_threads": _COUNT,
     "live.max_gap_s": _NON_NEGATIVE,
     "live.max_turn_deg": _NON_NEGATIVE,
+    "live.max_gap_growth": _NON_NEGATIVE,
     "live.background_nice": _Int(0, 19),
     "live.mapping_process": _Bool(),
     "live.update_tolerance": _NON_NEGATIVE,

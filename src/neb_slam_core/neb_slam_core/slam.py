@@ -434,17 +434,20 @@ class Frontend:
 
     def _max_gap_s(self) -> float:
         """``live.max_gap_s``, shortened to the time the camera takes to turn ``live.max_turn_deg`` at the
-        rate between the last two tracked frames (when there are two)."""
+        rate between the last two tracked frames, and to ``live.max_gap_growth`` times their interval
+        (when there are two)."""
         live = self.cfg.live
-        motion = self._tracked_motion() if live.max_turn_deg > 0 else None
-        if motion is None:
+        motion = self._tracked_motion() if live.max_turn_deg > 0 or live.max_gap_growth > 0 else None
+        if motion is None or motion[1] <= 0:
             return live.max_gap_s
         delta, dt_ns = motion
+        bounds = [live.max_gap_s] if live.max_gap_s > 0 else []
         turned_deg = float(np.degrees(Rotation.from_matrix(delta[:3, :3]).magnitude()))
-        if dt_ns <= 0 or turned_deg <= 0:
-            return live.max_gap_s
-        bound_s = live.max_turn_deg * dt_ns * 1e-9 / turned_deg
-        return min(live.max_gap_s, bound_s) if live.max_gap_s > 0 else bound_s
+        if live.max_turn_deg > 0 and turned_deg > 0:
+            bounds.append(live.max_turn_deg * dt_ns * 1e-9 / turned_deg)
+        if live.max_gap_growth > 0:
+            bounds.append(live.max_gap_growth * dt_ns * 1e-9)
+        return min(bounds) if bounds else 0.0
 
     def _tracked_motion(self) -> tuple[np.ndarray, int] | None:
         """The motion between the last two tracked frames (``inv(T_older) T_newer``) and the nanoseconds

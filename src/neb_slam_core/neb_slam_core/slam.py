@@ -270,7 +270,7 @@ class Frontend:
         self.lost = False
         # tracking.prediction features: the last tracked frame's index and features, which the next
         # frame is matched against, and while tracking fails, the last failed frame whose pose came from
-        # verified matches (the chain of matches through the loss, see prediction())
+        # verified matches (the chain of matches through the loss, see _matched_pose())
         self._motion = FeatureMotion(cfg.loop) if cfg.tracking.prediction == "features" else None
         self._reference: tuple[int, FrameFeatures] | None = None
         self._chained: tuple[int, FrameFeatures] | None = None

@@ -290,7 +290,10 @@ class BlockMap(nn.Module):
         if half > 0:  # the maximum over the square footprint: a grey dilation (OpenCV's is separable)
             depth = cv2.dilate(depth, np.ones((2 * half + 1, 2 * half + 1), np.uint8))
         depth_t = torch.as_tensor(np.ascontiguousarray(depth), device=dev)
-        kernels = self._observed_kernels()
+        # the C++ kernel where the map runs the fast path (the backend rule of every module with one)
+        on_cpu = dev.type == "cpu"
+        fast = _ext.use_fast_path(self.grid_backend, on_cpu, "BlockMap.mark_observed", f"a CPU map; got {dev}")
+        kernels = _ext.load_map_kernels() if fast else None
         grown = set()
         for block in self.blocks:
             n, vox = block.observed.shape[0], block.voxel_m
@@ -320,15 +323,6 @@ class BlockMap(nn.Module):
             if grew:
                 grown.add(block.block_id)
         return grown
-
-    def _observed_kernels(self):
-        """The C++ kernels for :meth:`mark_observed` where the map runs the fast path (CPU, a backend other
-        than ``reference``, the kernels available), else None (the torch path)."""
-        if self.grid_backend == "reference" or self.device.type != "cpu":
-            return None
-        if self.grid_backend == "auto" and _ext.unavailable_reason() is not None:
-            return None
-        return _ext.load_map_kernels()
 
     def observed(self, points_world: torch.Tensor, block_ids: list[int] | None = None) -> torch.Tensor:
         """``(N,)`` bool: the point lies in an observed voxel (:meth:`mark_observed`) of one of the blocks
@@ -434,24 +428,25 @@ def covering_centre(points: torch.Tensor, start: torch.Tensor, half_edge_m: floa
     the next frame allocates for the other side if it still needs a block. Where the mean's cube holds
     every outside point (one region of new space) the paper's centre stays."""
 
-    def count(c: torch.Tensor) -> int:
-        return int(((points - c).abs().amax(dim=-1) <= half_edge_m).sum())
+    def inside(c: torch.Tensor) -> torch.Tensor:
+        return (points - c).abs().amax(dim=-1) <= half_edge_m
 
-    n_start = count(start)
+    mask = inside(start)
+    n_start = int(mask.sum())
     if n_start == points.shape[0]:
         return start
     best, best_n = start, n_start
     centre = start
     for _ in range(20):  # a flat-window mean shift converges in a few steps
-        mask = (points - centre).abs().amax(dim=-1) <= half_edge_m
         if not mask.any():  # the window holds no point: restart at the nearest one
             mask = torch.zeros_like(mask)
             mask[(points - centre).abs().amax(dim=-1).argmin()] = True
         shifted = points[mask].mean(dim=0)
-        n = count(shifted)
+        if torch.equal(shifted, centre):  # converged: its cube was counted when it was reached
+            break
+        mask = inside(shifted)
+        n = int(mask.sum())
         if n > n_start and n >= best_n:  # on a tie between steps, the later (more central) one
             best, best_n = shifted, n
-        if torch.equal(shifted, centre):
-            break
         centre = shifted
     return best

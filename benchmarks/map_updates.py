@@ -6,11 +6,13 @@ node would publish is built twice from the same map:
 
 - ``old``: every changed block whole, float32 (``capture`` without a mirror: the exact encoding);
 - ``new``: through a :class:`~neb_slam_core.scene.map_update.ReceiverMirror` with the config's
-  ``live.update_tolerance`` and ``live.update_float16`` (or ``--tolerance`` / ``--float16``): a block's
-  first update whole, then its changed rows.
+  ``live.update_tolerance``, ``live.update_float16`` and ``live.update_delta_step`` (``--set`` changes
+  them): a block's first update whole, then its changed rows or its changes in steps.
 
 ``mb_per_s_*`` is the bytes of all updates over the sequence's recorded duration, in MB (10^6 bytes) per
-second: what a link carries when the engine keeps up with the camera. The ``new`` updates are applied in
+second: what a link carries when the engine keeps up with the camera; ``encode_ms_per_update_new`` and
+``apply_ms_per_update_new`` what encoding a ``new`` update costs the sender and decoding and applying it
+a receiver. The ``new`` updates are applied in
 order to a receiver map, which then holds what a tracker fed by them holds. Every ``--track-every``-th
 frame is then tracked twice from the same start (the previous frame's pose, with the same seed), against
 the mapper's final map and against the receiver's: ``pose_diff_cm_*`` are the distances between the two
@@ -57,9 +59,10 @@ def measure(frames, cfg, track_every: int = 5, progress: bool = True) -> dict:
     """The figures of the module docstring for ``frames`` under ``cfg``."""
     torch.manual_seed(cfg.seed)
     slam = Slam(cfg, frames[0].T_world_cam)
-    mirror = map_update.ReceiverMirror(cfg.live.update_tolerance, cfg.live.update_float16)
+    mirror = map_update.ReceiverMirror(cfg.live.update_tolerance, cfg.live.update_float16, cfg.live.update_delta_step)
     receiver = new_block_map(cfg)
     old_bytes = new_bytes = n_updates = 0
+    encode_s = apply_s = 0.0
     revisions: dict[int, int] = {}
     t0 = time.perf_counter()
     for frame in tqdm(frames, desc="engine", unit="frame", disable=not progress):
@@ -75,9 +78,13 @@ def measure(frames, cfg, track_every: int = 5, progress: bool = True) -> dict:
         old = map_update.capture(slam.block_map, changed, 1, stamps[-1], stamps, poses)
         new = map_update.capture(slam.block_map, changed, 1, stamps[-1], stamps, poses, mirror=mirror)
         old_bytes += len(map_update.encode(old))
+        t = time.perf_counter()
         data = map_update.encode(new)
+        encode_s += time.perf_counter() - t
         new_bytes += len(data)
+        t = time.perf_counter()
         map_update.apply(map_update.decode(data), receiver)
+        apply_s += time.perf_counter() - t
         n_updates += 1
     engine_s = time.perf_counter() - t0
     span_s = (frames[-1].stamp_ns - frames[0].stamp_ns) * 1e-9
@@ -105,14 +112,27 @@ def measure(frames, cfg, track_every: int = 5, progress: bool = True) -> dict:
         "mb_per_s_ratio": new_bytes / old_bytes,
         "kb_per_update_old": old_bytes / 1e3 / n_updates,
         "kb_per_update_new": new_bytes / 1e3 / n_updates,
+        "encode_ms_per_update_new": 1e3 * encode_s / n_updates,
+        "apply_ms_per_update_new": 1e3 * apply_s / n_updates,
         "table_max_error": table_err,
         "tolerance": cfg.live.update_tolerance,
         "float16": cfg.live.update_float16,
+        "delta_step": cfg.live.update_delta_step,
         "tracked_frames_compared": len(diffs),
         "pose_diff_cm_median": float(np.median(diffs)),
         "pose_diff_cm_max": float(np.max(diffs)),
         "engine_s_per_frame": engine_s / len(frames),
     }
+
+
+def live_update_settings() -> list[str]:
+    """``--set`` overrides that make any preset send updates as the ``live`` preset does."""
+    live = load_config("live").live
+    return [
+        f"live.update_tolerance={live.update_tolerance!r}",
+        f"live.update_float16={str(live.update_float16).lower()}",
+        f"live.update_delta_step={live.update_delta_step!r}",
+    ]
 
 
 def figures_for(source: str, frames: int, overrides: list[str], track_every: int, progress: bool) -> dict:

@@ -37,7 +37,7 @@ path). Keys ending in ``_ratio`` are new / old.
 **Map updates** (``benchmarks/map_updates.py``, unless ``--no-updates``): the engine run offline on the
 ``make demo`` scene and on the TUM fr1_xyz frames (``--updates-frames``: the first this many of each, 0:
 all), each mapping step's ``map_update`` built whole in float32 (old) and as the ``live`` preset sends it
-(new: changed rows, float16 tables). ``map_update_mb_per_s_old`` / ``_new`` (demo) and
+(new: the ``live`` preset's ``live.update_*`` settings). ``map_update_mb_per_s_old`` / ``_new`` (demo) and
 ``map_update_tum_mb_per_s_old`` / ``_new``: MB per second of recording; ``map_update_pose_diff_cm_max``
 (and ``_tum_``): how far the poses tracked on the map the new updates build are from those tracked on
 the mapper's own map.
@@ -63,6 +63,7 @@ import numpy as np
 import torch
 from common import load_figures, median_ms, record
 from map_updates import figures_for as map_update_figures
+from map_updates import live_update_settings
 from ros_outputs_reference import load as load_reference
 
 from neb_slam_core.config import MeshConfig, SlamConfig
@@ -326,8 +327,8 @@ def main() -> None:
     rclpy.try_shutdown()
     if not args.no_updates:
         for source, prefix in (("demo", "map_update_"), ("tum", "map_update_tum_")):
-            # new: as the live preset sends them (float16 tables, changed rows)
-            u = map_update_figures(source, args.updates_frames, ["live.update_float16=true"], 5, progress=True)
+            # new: as the live preset sends them
+            u = map_update_figures(source, args.updates_frames, live_update_settings(), 5, progress=True)
             for key in ("mb_per_s_old", "mb_per_s_new", "pose_diff_cm_median", "pose_diff_cm_max", "updates", "frames"):
                 figures[prefix + key] = u[key]
             figures[prefix + "ratio"] = u["mb_per_s_ratio"]

@@ -6,6 +6,7 @@ per-dataset presets build on these classes.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 
@@ -445,10 +446,13 @@ class LiveConfig:
     (:func:`neb_slam_core.engine_process.lower_thread_priority`). ``mapping_process``: mapping and loop
     closure run in a child process (:class:`neb_slam_core.live_mapping.ProcessMapping`), so that they do not
     take turns with tracking on one Python interpreter; False keeps them in threads of the tracker's process.
-    ``update_tolerance`` and ``update_float16``: how the mapping side's map updates carry the tables to the
-    tracker (:mod:`neb_slam_core.scene.map_update`): a changed table row goes once one of its values is
-    more than ``update_tolerance`` off the tracker's copy, as float16 with ``update_float16`` (0 and
-    False: every change, exact).
+    ``update_tolerance``, ``update_float16`` and ``update_delta_step``: how the mapping side's map updates
+    carry the tables to the tracker (:mod:`neb_slam_core.scene.map_update`): a changed table row goes once
+    one of its values is more than ``update_tolerance`` off the tracker's copy, as float16 with
+    ``update_float16`` (0 and False: every change, exact); with ``update_delta_step`` (a power of two; 0:
+    none) a block the tracker has goes instead as every value's change in whole steps, one byte each (two
+    where a change needs them), compressed, which keeps the tracker's copy within half a step of the
+    mapper's.
     """
 
     first_iterations: int = 30
@@ -461,6 +465,7 @@ class LiveConfig:
     mapping_process: bool = True
     update_tolerance: float = 0.0
     update_float16: bool = False
+    update_delta_step: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -480,3 +485,11 @@ class SlamConfig:
     seed: int = 0
     loop: LoopConfig = LoopConfig()
     live: LiveConfig = LiveConfig()
+
+
+def is_delta_step(step: float) -> bool:
+    """Whether ``step`` can be ``LiveConfig.update_delta_step``: 0 (none) or a power of two at most 1,
+    so that a whole number of steps (int16) times the step is exact in float32."""
+    if isinstance(step, bool) or not isinstance(step, (int, float)):
+        return False
+    return step == 0 or (0 < step <= 1 and math.frexp(step)[0] == 0.5)

@@ -37,7 +37,7 @@ from typing import Any
 
 import yaml
 
-from .config import SlamConfig, config_from_dict, config_to_dict, key_source
+from .config import SlamConfig, config_from_dict, config_to_dict, is_delta_step, key_source
 from .errors import ConfigError
 
 #: the key of a YAML file that names its parent
@@ -380,6 +380,15 @@ class _Bool:
         return "true or false"
 
 
+@dataclass(frozen=True)
+class _DeltaStep:
+    def ok(self, v: Any) -> bool:
+        return is_delta_step(v)
+
+    def expected(self) -> str:
+        return "0 or a power of two at most 1 (0.0009765625 is 2^-10)"
+
+
 _POSITIVE = _Num(0.0)
 _NON_NEGATIVE = _Num(0.0, lo_open=False)
 _POSITIVE_INT = _Int(1)
@@ -490,6 +499,7 @@ RULES: dict[str, Any] = {
     "live.mapping_process": _Bool(),
     "live.update_tolerance": _NON_NEGATIVE,
     "live.update_float16": _Bool(),
+    "live.update_delta_step": _DeltaStep(),
 }
 
 

@@ -140,7 +140,9 @@ class MappingSide:
         # a backend restored from a checkpoint goes on with its map, keyframes and optimiser
         self.backend = Backend(cfg, block_map) if backend is None else backend
         #: what the tracker's copy of the tables holds, as the updates left it (which rows go next)
-        self.mirror = map_update.ReceiverMirror(cfg.live.update_tolerance, cfg.live.update_float16)
+        self.mirror = map_update.ReceiverMirror(
+            cfg.live.update_tolerance, cfg.live.update_float16, cfg.live.update_delta_step
+        )
         self.loop_closer = LoopCloser(cfg.loop, seed=cfg.seed + 4) if cfg.loop.enabled and closes_loops else None
         self.map_lock = threading.RLock()
         # the loop thread adds keyframes to the closer's database while a lost tracker queries it

@@ -48,16 +48,16 @@ def test_layout_sizes_are_the_documented_ones():
     table_numel = m.blocks[0].grid.table.numel()
     n_decoder = sum(p.numel() for p in m.decoders.parameters())
     record = 125  # 10^3 voxels, 8 a byte
-    assert len(data) == 76 + 2 * (16 + 4 * table_numel + record) + 4 * n_decoder + 2 * 8 + 2 * 128
+    assert len(data) == 84 + 2 * (16 + 4 * table_numel + record) + 4 * n_decoder + 2 * 8 + 2 * 128
     assert data[:4] == b"NEBU"
-    assert struct.unpack_from("<HHQq", data, 4) == (4, 0, 5, 123)
+    assert struct.unpack_from("<HHQq", data, 4) == (5, 0, 5, 123)
     width = m.blocks[0].grid.table.shape[-1]
-    assert struct.unpack_from("<IIIIIqIQiIHH", data, 24) == (
+    assert struct.unpack_from("<IIIIIqIQiIHHIf", data, 24) == (
         2,
         table_numel,
         n_decoder,
         2,
-        76,
+        84,
         77,
         record,
         0,
@@ -65,10 +65,12 @@ def test_layout_sizes_are_the_documented_ones():
         0,
         width,
         4,
+        0,
+        0.0,
     )
     # the first block record is block 0 (ids are sorted), its centre follows its id, its record its table
-    assert struct.unpack_from("<I3f", data, 76) == (0, 0.0, 0.0, 0.0)
-    first = data[76 + 16 + 4 * table_numel :][:record]
+    assert struct.unpack_from("<I3f", data, 84) == (0, 0.0, 0.0, 0.0)
+    first = data[84 + 16 + 4 * table_numel :][:record]
     bits = np.unpackbits(np.frombuffer(first, np.uint8), bitorder="little").astype(bool)
     assert np.array_equal(bits, m.blocks[0].observed.numpy().reshape(-1))
     assert map_update.decode(data).loop_stamp_ns == 77
@@ -81,7 +83,7 @@ def test_a_format_1_update_still_reads(header_bytes):
     receiver's own record as it was)."""
     m = trained(observed_voxel_m=0.0)  # no record: the blocks are laid out as format 1 lays them out
     data = map_update.encode(map_update.capture(m, [1], 3, 9, [5], np.eye(4)[None], loop_stamp_ns=123))
-    old = bytearray(data[:header_bytes] + data[76:])
+    old = bytearray(data[:header_bytes] + data[84:])
     struct.pack_into("<H", old, 4, 1)
     struct.pack_into("<I", old, 40, header_bytes)
     u = map_update.decode(bytes(old))
@@ -102,7 +104,7 @@ def test_the_senders_epoch_and_durable_keyframes_round_trip_and_a_format_2_updat
     data = map_update.encode(update)
     u = map_update.decode(data)
     assert (u.epoch, u.durable_keyframes, u.version) == (2**63 + 5, 17, 4)
-    old = bytearray(data[:56] + data[76:])  # format 2: the header ends after observed_bytes
+    old = bytearray(data[:56] + data[84:])  # format 2: the header ends after observed_bytes
     struct.pack_into("<H", old, 4, 2)
     struct.pack_into("<I", old, 40, 56)
     u2 = map_update.decode(bytes(old))
@@ -206,7 +208,7 @@ def test_after_a_blocks_first_update_only_its_changed_rows_go_and_the_receiver_m
     record = 125
     n_decoder = sum(p.numel() for p in sender.decoders.parameters())
     # block 0 unchanged: no rows; block 1: rows 3 and 7, each an index and its values
-    assert len(data) == 76 + 2 * (16 + 4 + record) + 2 * (4 + 4 * width) + 4 * n_decoder
+    assert len(data) == 84 + 2 * (16 + 4 + record) + 2 * (4 + 4 * width) + 4 * n_decoder
     assert struct.unpack_from("<IHH", data, 68) == (2, width, 4)
     decoded = map_update.decode(data)
     assert [b.rows.tolist() for b in decoded.blocks] == [[], [3, 7]]
@@ -243,7 +245,7 @@ def test_float16_and_a_tolerance_keep_every_receiver_value_within_their_bound():
 def test_a_format_3_update_still_reads_and_a_partial_new_block_is_refused():
     m = trained()
     data = map_update.encode(map_update.capture(m, [0], 4, 9, [5], np.eye(4)[None]))
-    old = bytearray(data[:68] + data[76:])  # format 3: no row fields, float32 tables
+    old = bytearray(data[:68] + data[84:])  # format 3: no row fields, float32 tables
     struct.pack_into("<H", old, 4, 3)
     struct.pack_into("<I", old, 40, 68)
     u = map_update.decode(bytes(old))
@@ -254,3 +256,99 @@ def test_a_format_3_update_still_reads_and_a_partial_new_block_is_refused():
     partial = map_update.decode(map_update.encode(map_update.capture(m, [0], 2, 0, [], [], mirror=mirror)))
     with pytest.raises(MapUpdateError, match="new block 0 in part"):
         map_update.apply(partial, make_map())
+
+
+def test_a_format_4_update_with_rows_still_reads():
+    sender, mirror = trained(), map_update.ReceiverMirror()
+    map_update.capture(sender, [0, 1], 1, 0, [], [], mirror=mirror)
+    with torch.no_grad():
+        _rows(sender.blocks[1])[[2]] += 0.5
+    data = map_update.encode(map_update.capture(sender, [0, 1], 2, 0, [], [], mirror=mirror))
+    old = bytearray(data[:76] + data[84:])  # format 4: no delta fields
+    struct.pack_into("<H", old, 4, 4)
+    struct.pack_into("<I", old, 40, 76)
+    u = map_update.decode(bytes(old))
+    assert [b.rows.tolist() for b in u.blocks] == [[], [2]] and u.delta_step == 0.0
+    np.testing.assert_array_equal(u.blocks[1].table, map_update.decode(data).blocks[1].table)
+
+
+STEP = 2.0**-10
+
+
+def _delta_pair():
+    """A sender, a receiver that applied the sender's first (whole, float16) update, and the mirror."""
+    sender, receiver = trained(), make_map(seed=99)
+    mirror = map_update.ReceiverMirror(float16=True, delta_step=STEP)
+    first = map_update.capture(sender, [0, 1, 2], 1, 0, [], [], mirror=mirror)
+    assert all(b.whole for b in first.blocks) and first.value_bytes == 2
+    map_update.apply(map_update.decode(map_update.encode(first)), receiver)
+    return sender, receiver, mirror
+
+
+def test_changes_in_steps_are_the_hand_worked_counts_and_leave_the_receiver_with_the_mirrors_tables():
+    sender, receiver, mirror = _delta_pair()
+    # what the receivers hold: the first update's float16 values (within 2^-12 of the values in [0, 1))
+    held = _rows(sender.blocks[1]).detach().half().float().numpy()
+    with torch.no_grad():
+        _rows(sender.blocks[1])[3] += 3 * STEP  # three steps
+        _rows(sender.blocks[2])[4, 0] -= 200 * STEP  # beyond one byte's 127 steps
+    update = map_update.capture(sender, [0, 1, 2], 2, 0, [], [], mirror=mirror)
+    data = map_update.encode(update)
+    assert struct.unpack_from("<IHHIf", data, 68)[3:] == (3, STEP)  # three blocks as changes, the step
+    decoded = map_update.decode(data)
+    # float16's rounding (at most a quarter step here) is in no change: rounded to whole steps, 0 for every
+    # value but those moved
+    steps = decoded.blocks[1].steps.reshape(-1, 2)
+    want = np.zeros_like(steps)
+    want[3] = 3
+    assert steps.dtype == np.int8 and np.array_equal(steps, want)
+    table = _rows(sender.blocks[1]).detach().numpy()
+    assert np.array_equal(steps, np.rint((table - held) / STEP))
+    assert not decoded.blocks[0].steps.any()  # block 0 did not move
+    far = decoded.blocks[2].steps.reshape(-1, 2)  # block 2 needs two bytes a value
+    assert far.dtype == np.int16 and far[4, 0] == -200 and np.count_nonzero(far) == 1
+    # block records: head, step_bytes and packed size, the zlib stream, the record (block 0, 1, then 2)
+    at = 84
+    for block, width in ((0, 1), (1, 1), (2, 2)):
+        assert struct.unpack_from("<I", data, at)[0] == block
+        got_width, packed = struct.unpack_from("<BI", data, at + 16)
+        assert got_width == width and packed < 64 * width  # mostly zeros: zlib packs them
+        at += 16 + 5 + packed + 125
+    map_update.apply(decoded, receiver)
+    for i in (0, 1, 2):
+        assert torch.equal(_rows(receiver.blocks[i]), torch.from_numpy(mirror._tables[i]))
+        diff = (receiver.blocks[i].grid.table - sender.blocks[i].grid.table).detach().abs()
+        assert float(diff.max()) <= STEP / 2
+
+
+def test_changes_in_steps_track_a_randomly_moving_map_within_half_a_step():
+    sender, receiver, mirror = _delta_pair()
+    g = torch.Generator().manual_seed(11)
+    for version in range(2, 8):
+        with torch.no_grad():
+            for b in sender.blocks:  # Adam-like steps: every value moves a little
+                b.grid.table.add_(0.02 * torch.randn(b.grid.table.shape, generator=g))
+        data = map_update.encode(map_update.capture(sender, [0, 1, 2], version, 0, [], [], mirror=mirror))
+        map_update.apply(map_update.decode(data), receiver)
+        for a, b in zip(receiver.blocks, sender.blocks):
+            assert float((a.grid.table - b.grid.table).detach().abs().max()) <= STEP / 2 + 1e-6
+        assert all(torch.equal(_rows(receiver.blocks[i]), torch.from_numpy(mirror._tables[i])) for i in range(3))
+
+
+def test_bad_changes_in_steps_are_refused():
+    with pytest.raises(ValueError, match="power of two"):
+        map_update.ReceiverMirror(delta_step=0.003)
+    sender, receiver, mirror = _delta_pair()
+    data = bytearray(map_update.encode(map_update.capture(sender, [0], 2, 0, [], [], mirror=mirror)))
+    bad_step = bytearray(data)
+    struct.pack_into("<f", bad_step, 80, 0.003)
+    with pytest.raises(MapUpdateError, match="delta_step 0.003"):
+        map_update.decode(bytes(bad_step))
+    packed = struct.unpack_from("<I", data, 84 + 16)[0]
+    broken = bytearray(data)
+    broken[84 + 20 : 84 + 20 + packed] = bytes(packed)  # zeros are no zlib stream
+    with pytest.raises(MapUpdateError, match="block 0: its changes do not inflate"):
+        map_update.decode(bytes(broken))
+    # a receiver that never got block 0 whole cannot take its changes
+    with pytest.raises(MapUpdateError, match="new block 0 as changes"):
+        map_update.apply(map_update.decode(bytes(data)), make_map())

@@ -11,10 +11,10 @@ table rows with a value more than ``tolerance`` off it, or, with a ``delta_step`
 as a whole number of steps, in one byte a value (two where a change in the block needs more than
 -127..127; a change beyond -32767..32767 goes on in the next updates), deflate-compressed. Table values
 of whole blocks and rows go as float32, or as float16 when the sender asks for it (decoders and poses
-always at full precision). Applying every update in order gives each
-receiver the mirror's tables exactly: with tolerance 0, no step and float32 the mapper's map itself;
-otherwise every table value within ``tolerance`` (rows) or half a step (deltas) of the mapper's, plus
-float16's rounding where a block went whole.
+always at full precision). Applying every update in order gives each receiver the mirror's tables
+exactly: with tolerance 0, no step and float32 the mapper's map itself; otherwise every table value
+within ``tolerance`` (rows) or half a step (changes in steps) of the mapper's, plus float16's rounding
+where a block last went whole.
 
 The step is a power of two, so that a change times the step is exact in float32 and the receiver's sum
 (one float32 addition per value) is the mirror's, bit for bit.
@@ -123,9 +123,9 @@ class MapUpdateError(NebSlamError):
 class BlockState:
     """One block's identity and parameters: ``table`` is the float32 table ``(table_numel,)``, or with
     ``rows`` (increasing row indices) those rows only, ``(len(rows) * row_width,)``; with ``steps``
-    (int8 or int16, ``(table_numel,)``) the table's change in the update's ``delta_step`` instead, and ``table``
-    empty; ``observed`` its observed-space record packed 8 voxels a byte (:func:`pack_observed`), empty
-    without one."""
+    (int8 or int16, ``(table_numel,)``) the table's change in the update's ``delta_step`` instead, and
+    ``table`` empty; ``observed`` its observed-space record packed 8 voxels a byte
+    (:func:`pack_observed`), empty without one."""
 
     block_id: int
     centre_world: np.ndarray
@@ -284,7 +284,9 @@ def encode(update: MapUpdate) -> bytes:
     def kind(test):
         return sorted((b for b in update.blocks if test(b)), key=lambda b: b.block_id)
 
-    whole, partial, delta = kind(BlockState.whole.fget), kind(lambda b: b.rows is not None), kind(_has_steps)
+    whole = kind(lambda b: b.whole)
+    partial = kind(lambda b: b.rows is not None)
+    delta = kind(lambda b: b.steps is not None)
     table_numel = whole[0].table.size if whole else delta[0].steps.size if delta else 0
     observed_bytes = update.blocks[0].observed.size if update.blocks else 0
     if delta and not (update.delta_step > 0 and is_delta_step(update.delta_step)):
@@ -337,10 +339,6 @@ def encode(update: MapUpdate) -> bytes:
     return b"".join(parts)
 
 
-def _has_steps(b: BlockState) -> bool:
-    return b.steps is not None
-
-
 def decode(data) -> MapUpdate:
     """Parse an update (bytes, bytearray, memoryview or array of uint8); the arrays view ``data``."""
     buf = memoryview(data).cast("B")
@@ -377,8 +375,7 @@ def decode(data) -> MapUpdate:
         return MapUpdateError(
             f"map update of {len(buf)} bytes ends inside {what} (needs {need} bytes at {at}; header: "
             f"{n_blocks} whole, {n_partial} partial and {n_delta} delta blocks of {table_numel} values and "
-            f"{observed_bytes} "
-            f"record bytes, {n_decoder} decoder values, {n_kf} keyframes)"
+            f"{observed_bytes} record bytes, {n_decoder} decoder values, {n_kf} keyframes)"
         )
 
     offset = header_bytes
@@ -494,7 +491,7 @@ def apply(update: MapUpdate, block_map: BlockMap) -> list[int]:
                     f"have {table.numel()} table values (different grid config?)"
                 )
             with torch.no_grad():
-                table.view(-1).add_(torch.from_numpy(step_values(state.steps, update.delta_step)))
+                table.view(-1).add_(torch.from_numpy(step_values(state.steps, update.delta_step)).to(table.device))
         elif state.rows is None:
             if state.table.size != table.numel():
                 raise MapUpdateError(

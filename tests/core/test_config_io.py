@@ -236,6 +236,8 @@ def test_wrong_type_names_the_file_and_the_dotted_key(tmp_path, text, key, expec
         ("seed: -1\n", "seed"),
         ("one_blob:\n  period_m: 4.0\n", "one_blob.period_m"),  # must exceed the 5 m block edge
         ("tracking:\n  min_valid_rays: 2000\n", "tracking.min_valid_rays"),  # more than n_rays
+        ("live:\n  update_delta_step: 0.001\n", "live.update_delta_step"),  # not a power of two
+        ("live:\n  update_delta_step: 2.0\n", "live.update_delta_step"),  # above 1
     ],
 )
 def test_out_of_range_names_the_file_and_the_dotted_key(tmp_path, text, key):
@@ -427,3 +429,10 @@ def test_the_prediction_is_one_of_two():
         load_config("tum", ["tracking.prediction=orb"])
     with pytest.raises(ConfigError, match=r"live\.background_nice"):
         load_config("tum", ["live.background_nice=20"])
+
+
+def test_a_delta_step_is_zero_or_a_power_of_two_at_most_one():
+    from neb_slam_core.config import is_delta_step
+
+    assert all(is_delta_step(v) for v in (0, 0.0, 1.0, 0.5, 2.0**-11, 2.0**-30))
+    assert not any(is_delta_step(v) for v in (2.0, 0.75, 0.001, -0.5, True, "0.5", float("nan")))

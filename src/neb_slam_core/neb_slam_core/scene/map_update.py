@@ -190,21 +190,24 @@ class ReceiverMirror:
         mirror then holds what the receivers will have. ``whole``: every block whole (a receiver that
         starts over)."""
         ids = sorted(int(b) for b in block_ids)
-        tables = [_table_rows(block_map.blocks[i]) for i in ids]
-        fits = self.float16 and all(float(np.abs(t).max(initial=0.0)) <= FLOAT16_MAX for t in tables)
+        # views of the tables (the caller holds the map still while it captures): read for the changes
+        # in steps, copied for values
+        tables = {i: _table_rows(block_map.blocks[i]) for i in ids}
+        stepped = {i for i in ids if self._goes_in_steps(i, tables[i].shape, whole)}
+        valued = [tables[i] for i in ids if i not in stepped]
+        fits = self.float16 and all(float(np.abs(t).max(initial=0.0)) <= FLOAT16_MAX for t in valued)
         value_bytes = 2 if fits else 4
         states = []
-        for i, table in zip(ids, tables):
-            block = block_map.blocks[i]
-            # what the receivers get (``table`` is this update's own copy: float32 needs no other)
-            wire = table.astype(_VALUE_TYPES[value_bytes], copy=False)
-            held = self._tables.get(i)
+        for i in ids:
+            block, table = block_map.blocks[i], tables[i]
             centre = block.centre.detach().cpu().numpy().astype(np.float32)
             observed = pack_observed(block.observed)
-            if self.delta_step and held is not None and not whole and held.shape == table.shape:
-                steps = self._steps(held, table)
+            if i in stepped:
+                steps = self._steps(self._tables[i], table)
                 states.append(BlockState(i, centre, np.zeros(0, np.float32), observed, steps=steps))
                 continue
+            held = self._tables.get(i)
+            wire = table.astype(_VALUE_TYPES[value_bytes], copy=True)  # what the receivers get
             rows = None
             if held is not None and not whole and held.shape == wire.shape and held.dtype == wire.dtype:
                 # what would go against what is there: a value float16 rounds to the held one has not moved
@@ -222,6 +225,12 @@ class ReceiverMirror:
                 values = wire[rows].reshape(-1).astype(np.float32, copy=False)  # indexing copied
             states.append(BlockState(i, centre, values, observed, rows))
         return states, value_bytes
+
+    def _goes_in_steps(self, block_id: int, shape: tuple[int, ...], whole: bool) -> bool:
+        """Whether block ``block_id`` (a table of ``shape``) goes as changes in steps: with a step, to
+        receivers that hold it (and are not starting over)."""
+        held = self._tables.get(block_id)
+        return bool(self.delta_step) and not whole and held is not None and held.shape == shape
 
     def _steps(self, held: np.ndarray, table: np.ndarray) -> np.ndarray:
         """The change from ``held`` (float32, updated in place as the receivers will have it) towards
@@ -242,9 +251,10 @@ def step_values(steps: np.ndarray, delta_step: float) -> np.ndarray:
 
 
 def _table_rows(block) -> np.ndarray:
-    """A block's table as float32 ``(rows, row_width)``, a copy."""
+    """A block's table as float32 ``(rows, row_width)``: a view of a float32 CPU table (it changes with
+    the map), else a copy."""
     table = block.grid.table.detach().cpu()
-    return table.reshape(-1, table.shape[-1]).numpy().astype(np.float32, copy=True)
+    return table.reshape(-1, table.shape[-1]).numpy().astype(np.float32, copy=False)
 
 
 def capture(
@@ -261,8 +271,8 @@ def capture(
     """The update carrying blocks ``block_ids`` of ``block_map``, its decoders and the keyframe poses
     ``(K, 4, 4)`` with their stamps ``(K,)``, as copies (another thread or process may apply or encode it
     while the map moves on); ``loop_stamp_ns`` names the newest loop correction in it. With ``mirror``
-    the blocks go as it decides (changed rows, float16), ``whole`` all of them whole; without it whole
-    and exact."""
+    the blocks go as it decides (changed rows or changes in steps, float16), ``whole`` all of them whole;
+    without it whole and exact. The map must hold still while this runs (the mapper holds its lock)."""
     stamps = np.array(keyframe_stamps_ns, dtype=np.int64).reshape(-1)
     poses = np.array(keyframe_poses, dtype=np.float64).reshape(-1, 4, 4)
     if len(stamps) != len(poses):

@@ -1,4 +1,5 @@
-"""The keyframe store's block index: which keyframes belong to which block."""
+"""The keyframe store: its kept pixels, its draws, its size, and its block index (which keyframes belong to
+which block)."""
 
 from __future__ import annotations
 
@@ -88,9 +89,45 @@ def test_draw_from_keyframes_covers_exactly_their_pixels_uniformly():
 
 
 def test_store_grows_by_its_pixels_and_not_by_copies():
-    from neb_slam_core.mapping.keyframes import BYTES_PER_PIXEL, GROWTH
+    from neb_slam_core.mapping.keyframes import BYTES_PER_PIXEL, GROWTH, ORDER_BYTES_PER_PIXEL
 
     store, _ = _textured_store(40)
     pixel_bytes = BYTES_PER_PIXEL * store.n_pixels
+    order_bytes = ORDER_BYTES_PER_PIXEL * 16 * 12  # one image size: one pixel order
     # the buffers are never more than GROWTH times what they hold; the rest is per-keyframe records
-    assert pixel_bytes <= store.nbytes() <= GROWTH * pixel_bytes + 40 * 200
+    assert pixel_bytes + order_bytes <= store.nbytes() <= GROWTH * pixel_bytes + order_bytes + 40 * 200
+
+
+def test_every_pixel_is_kept_with_the_same_chance():
+    # 400 keyframes keeping a quarter of 192 pixels: each pixel is kept by Binomial(400, 1/4) of them,
+    # mean 100 and standard deviation 8.66
+    store, _ = _textured_store(400)
+    k = store[0].intrinsics
+    dirs, _, _, _ = store.gather(torch.arange(store.n_pixels))
+    u = torch.round(dirs[:, 0] * k.fx + k.cx).long()
+    v = torch.round(dirs[:, 1] * k.fy + k.cy).long()
+    kept = np.bincount((v * 16 + u).numpy(), minlength=16 * 12)
+    assert kept.sum() == 400 * 48
+    assert kept.min() > 100 - 5 * 8.66 and kept.max() < 100 + 5 * 8.66
+    # keyframes do not all keep the same pixels: 400 offsets drawn from 192 give 192 (1 - (191/192)^400)
+    # = 168 distinct ones on average
+    assert len({kf.order_offset for kf in store.keyframes}) > 150
+
+
+def test_keyframes_of_two_image_sizes_keep_their_own_pixels():
+    rng = np.random.default_rng(2)
+    store, frames = KeyframeStore(0.5, seed=1), []
+    for i, (h, w) in enumerate([(12, 16), (6, 8), (12, 16), (6, 8)]):
+        k = Intrinsics(10.0, 11.0, (w - 1) / 2, (h - 1) / 2, w, h)
+        rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        frames.append(RgbdFrame(rgb, rng.uniform(0.5, 4.0, (h, w)).astype(np.float32), k, i))
+        store.add(frames[-1], np.eye(4), i)
+    assert [kf.n_pixels for kf in store.keyframes] == [96, 24, 96, 24]
+    dirs, rgb, _, owner = store.gather(torch.arange(store.n_pixels))
+    for i, frame in enumerate(frames):
+        k, sel = frame.intrinsics, owner == i
+        u = torch.round(dirs[sel, 0] * k.fx + k.cx).long()
+        v = torch.round(dirs[sel, 1] * k.fy + k.cy).long()
+        assert u.min() >= 0 and u.max() < k.width and v.min() >= 0 and v.max() < k.height
+        assert len(set(zip(u.tolist(), v.tolist()))) == store[i].n_pixels  # no pixel twice
+        np.testing.assert_array_equal(rgb[sel].numpy(), frame.rgb[v, u] / np.float32(255.0))

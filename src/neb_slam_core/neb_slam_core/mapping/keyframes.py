@@ -1,12 +1,17 @@
 """The keyframe store: a random subset of each keyframe's pixels (as Co-SLAM keeps them), its pose, and
 which blocks each keyframe belongs to.
 
-The kept pixels of all keyframes live in three flat buffers: pixel coordinates (int16), colour (uint8)
-and depth (float16: 0.05 % of the depth, far below any depth sensor's noise), 9 bytes per pixel; a
-keyframe is a range of them. Ray directions are recomputed from the coordinates and the keyframe's
-intrinsics when pixels are drawn. So the store grows by ``9 * pixel_fraction * width * height`` bytes
-per keyframe (138 KB at 640x480 and the default 5 %). The buffers grow by a quarter when full: at most a
-quarter of them is spare, and each pixel is copied four times over a run on average.
+Which pixels a keyframe keeps comes from one random order of all pixels of its image size, drawn once
+per size and shared by the keyframes: a keyframe keeps the ``n`` pixels that follow a random offset in
+that order (wrapping round), so every pixel is kept with the same chance ``pixel_fraction`` and no
+pixel twice, and the keyframe stores its offset instead of its pixels' coordinates. Colour (uint8) and
+depth (float16: 0.05 % of the depth, far below any depth sensor's noise) of the kept pixels live in two
+flat buffers, 5 bytes per pixel, a keyframe being a range of them. Coordinates come back from the
+order, and ray directions from the coordinates and the keyframe's intrinsics, when pixels are drawn. So
+the store grows by ``5 * pixel_fraction * width * height`` bytes per keyframe (77 KB at 640x480 and
+the default 5 %), plus 4 bytes per pixel of each image size once for its order. The buffers grow by a
+quarter when full: at most a quarter of them is spare, and each pixel is copied four times over a run
+on average.
 """
 
 from __future__ import annotations
@@ -20,8 +25,10 @@ import torch
 
 from ..types import Intrinsics, RgbdFrame
 
-#: bytes the store keeps per pixel: coordinates (2 x int16), colour (3 x uint8), depth (float16)
-BYTES_PER_PIXEL = 2 * 2 + 3 + 2
+#: bytes the store keeps per kept pixel: colour (3 x uint8), depth (float16)
+BYTES_PER_PIXEL = 3 + 2
+#: bytes of an image size's pixel order, per pixel of the image: (u, v) as 2 x int16
+ORDER_BYTES_PER_PIXEL = 2 * 2
 #: how much the pixel buffers grow when full
 GROWTH = 1.25
 
@@ -37,6 +44,7 @@ class Keyframe:
         T_world_cam: current pose estimate (float64 4x4), refined by mapping and loop closure.
         intrinsics: its (rectified, pinhole) camera.
         start, n_pixels: its kept pixels are ``start .. start + n_pixels`` of the store's buffers.
+        order_offset: its first kept pixel's position in its image size's pixel order.
         block_ids: the blocks it belongs to, ascending (set through :meth:`KeyframeStore.assign`).
     """
 
@@ -47,6 +55,7 @@ class Keyframe:
     intrinsics: Intrinsics
     start: int
     n_pixels: int
+    order_offset: int
     block_ids: list[int] = field(default_factory=list)
 
 
@@ -61,11 +70,15 @@ class KeyframeStore:
         self.device = device
         self.keyframes: list[Keyframe] = []
         self._n = 0  # pixels in use
-        self._uv = torch.zeros((0, 2), dtype=torch.int16, device=device)
+        # every image size's pixels in a random order, one size after another: (u, v) rows
+        self._orders_uv = torch.zeros((0, 2), dtype=torch.int16, device=device)
+        self._order_start: dict[tuple[int, int], int] = {}  # (height, width) -> its first row in _orders_uv
         self._rgb = torch.zeros((0, 3), dtype=torch.uint8, device=device)
         self._depth = torch.zeros(0, dtype=torch.float16, device=device)
         self._starts = torch.zeros(0, dtype=torch.long, device=device)  # per keyframe, its first pixel
         self._camera = torch.zeros((0, 4), dtype=torch.float32, device=device)  # per keyframe fx, fy, cx, cy
+        # per keyframe: its order's first row in _orders_uv, the order's length, the keyframe's offset in it
+        self._window = torch.zeros((0, 3), dtype=torch.long, device=device)
         self._block_keyframes: dict[int, list[int]] = {}  # block id -> keyframe ids, ascending
 
     def __len__(self) -> int:
@@ -80,8 +93,9 @@ class KeyframeStore:
         return self._n
 
     def nbytes(self) -> int:
-        """Bytes the store holds: pixel buffers (with their spare capacity) and per-keyframe records."""
-        buffers = (self._uv, self._rgb, self._depth, self._starts, self._camera)
+        """Bytes the store holds: pixel buffers (with their spare capacity), pixel orders and per-keyframe
+        records."""
+        buffers = (self._orders_uv, self._rgb, self._depth, self._starts, self._camera, self._window)
         poses = 16 * 8 * len(self.keyframes)
         index = 8 * sum(len(kf.block_ids) for kf in self.keyframes)
         return sum(t.element_size() * t.nelement() for t in buffers) + poses + 2 * index
@@ -91,23 +105,33 @@ class KeyframeStore:
         if max(h, w) > np.iinfo(np.int16).max:
             raise ValueError(f"KeyframeStore: a {w}x{h} image has coordinates beyond int16")
         n = max(1, int(round(self.pixel_fraction * h * w)))
-        pick = self.rng.choice(h * w, size=n, replace=h * w < n)
-        v, u = np.divmod(pick, w)
+        order_start = self._order(h, w)
+        offset = int(self.rng.integers(h * w))
+        uv = self._orders_uv[order_start + (offset + np.arange(n)) % (h * w)].long().cpu().numpy()
+        pick = uv[:, 1] * w + uv[:, 0]
         start = self._n
         self._reserve(start + n)
         d = self.device
-        self._uv[start : start + n] = torch.as_tensor(np.stack([u, v], axis=1).astype(np.int16), device=d)
         self._rgb[start : start + n] = torch.as_tensor(frame.rgb.reshape(-1, 3)[pick], device=d)
         self._depth[start : start + n] = torch.as_tensor(frame.depth_m.reshape(-1)[pick], device=d).half()
         self._n = start + n
         k = frame.intrinsics
         self._starts = torch.cat([self._starts, torch.tensor([start], device=d)])
         self._camera = torch.cat([self._camera, torch.tensor([[k.fx, k.fy, k.cx, k.cy]], device=d)])
-        kf = Keyframe(
-            len(self.keyframes), frame_index, frame.stamp_ns, np.array(T_world_cam, dtype=np.float64), k, start, n
-        )
+        self._window = torch.cat([self._window, torch.tensor([[order_start, h * w, offset]], device=d)])
+        T = np.array(T_world_cam, dtype=np.float64)
+        kf = Keyframe(len(self.keyframes), frame_index, frame.stamp_ns, T, k, start, n, offset)
         self.keyframes.append(kf)
         return kf
+
+    def _order(self, h: int, w: int) -> int:
+        """The first row in the pixel orders of the ``h x w`` size's order, drawn when first needed."""
+        if (h, w) not in self._order_start:
+            v, u = np.divmod(self.rng.permutation(h * w), w)
+            order = torch.as_tensor(np.stack([u, v], axis=1).astype(np.int16), device=self.device)
+            self._order_start[(h, w)] = len(self._orders_uv)
+            self._orders_uv = torch.cat([self._orders_uv, order])
+        return self._order_start[(h, w)]
 
     def _reserve(self, n: int) -> None:
         """Grow the pixel buffers (by :data:`GROWTH`) to hold ``n`` pixels."""
@@ -120,7 +144,7 @@ class KeyframeStore:
             out[: self._n] = t[: self._n]
             return out
 
-        self._uv, self._rgb, self._depth = grown(self._uv), grown(self._rgb), grown(self._depth)
+        self._rgb, self._depth = grown(self._rgb), grown(self._depth)
 
     def poses(self) -> np.ndarray:
         """``(K, 4, 4)`` current keyframe poses."""
@@ -138,7 +162,9 @@ class KeyframeStore:
         keyframe id of each ``(N,)``."""
         owner = torch.searchsorted(self._starts, idx, right=True) - 1
         cam = self._camera[owner]
-        uv = self._uv[idx].to(torch.float32)
+        window = self._window[owner]
+        row = window[:, 0] + (window[:, 2] + idx - self._starts[owner]) % window[:, 1]
+        uv = self._orders_uv[row].to(torch.float32)
         x = (uv[:, 0] - cam[:, 2]) / cam[:, 0]
         y = (uv[:, 1] - cam[:, 3]) / cam[:, 1]
         dirs = torch.stack([x, y, torch.ones_like(x)], dim=-1)

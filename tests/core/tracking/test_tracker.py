@@ -89,11 +89,12 @@ def test_gauss_newton_recovers_a_perturbed_pose(fitted_small_map, start, coarse_
 
 def test_adam_reduces_the_error_of_a_perturbed_pose(fitted_small_map):
     """The paper's optimiser, at its learning rate for fast motion, brings a 2 cm error under a quarter of
-    itself in 30 steps on each of three held-out frames (at about 1 cm per step Adam hovers around the
+    itself in 40 steps on each of three held-out frames (at about 1 cm per step Adam hovers around the
     minimum, so one frame's final error depends on the draw: three frames and a step count past the hovering
-    make the check about the optimiser, not one draw)."""
+    make the check about the optimiser, not one draw; after 30 steps one of these frames still ends between
+    0.05 and 0.27 of its error over six tracker seeds, after 40 all end below 0.11)."""
     fm = fitted_small_map
-    cfg = TrackingConfig(n_rays=1024, iterations=30, lr=1e-2, method="adam")
+    cfg = TrackingConfig(n_rays=1024, iterations=40, lr=1e-2, method="adam")
     for frame in fm.held_out[:3]:
         T0 = perturbed(frame.T_world_cam, np.array([0.012, -0.012, 0.01]), np.array([0.0, 0.0, 0.0]))
         result = Tracker(cfg, fm.render, seed=0).track(fm.block_map, frame, T0)

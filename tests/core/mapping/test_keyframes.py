@@ -40,6 +40,11 @@ def test_assign_keeps_both_sides_ascending_and_reassigning_replaces():
     assert store.keyframes_of_block(0) == [0, 3]
 
 
+def _pixels(dirs: torch.Tensor, k: Intrinsics) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pixel ``(u, v)`` of each gathered direction (z = 1) of a camera ``k``."""
+    return torch.round(dirs[:, 0] * k.fx + k.cx).long(), torch.round(dirs[:, 1] * k.fy + k.cy).long()
+
+
 def _textured_store(n_keyframes: int, pixel_fraction: float = 0.25) -> tuple[KeyframeStore, list[RgbdFrame]]:
     k = Intrinsics(20.0, 22.0, 7.5, 5.5, 16, 12)
     rng = np.random.default_rng(7)
@@ -60,8 +65,7 @@ def test_gather_gives_each_kept_pixel_of_its_keyframe():
     assert owner.tolist() == [i for i in range(5) for _ in range(n)]
     k = frames[0].intrinsics
     # a pixel's direction is its pinhole ray (z = 1); colour and depth are the image's there
-    u = torch.round(dirs[:, 0] * k.fx + k.cx).long()
-    v = torch.round(dirs[:, 1] * k.fy + k.cy).long()
+    u, v = _pixels(dirs, k)
     assert torch.all(dirs[:, 2] == 1.0)
     for i, frame in enumerate(frames):
         sel = owner == i
@@ -104,8 +108,7 @@ def test_every_pixel_is_kept_with_the_same_chance():
     store, _ = _textured_store(400)
     k = store[0].intrinsics
     dirs, _, _, _ = store.gather(torch.arange(store.n_pixels))
-    u = torch.round(dirs[:, 0] * k.fx + k.cx).long()
-    v = torch.round(dirs[:, 1] * k.fy + k.cy).long()
+    u, v = _pixels(dirs, k)
     kept = np.bincount((v * 16 + u).numpy(), minlength=16 * 12)
     assert kept.sum() == 400 * 48
     assert kept.min() > 100 - 5 * 8.66 and kept.max() < 100 + 5 * 8.66
@@ -126,8 +129,7 @@ def test_keyframes_of_two_image_sizes_keep_their_own_pixels():
     dirs, rgb, _, owner = store.gather(torch.arange(store.n_pixels))
     for i, frame in enumerate(frames):
         k, sel = frame.intrinsics, owner == i
-        u = torch.round(dirs[sel, 0] * k.fx + k.cx).long()
-        v = torch.round(dirs[sel, 1] * k.fy + k.cy).long()
+        u, v = _pixels(dirs[sel], k)
         assert u.min() >= 0 and u.max() < k.width and v.min() >= 0 and v.max() < k.height
         assert len(set(zip(u.tolist(), v.tolist()))) == store[i].n_pixels  # no pixel twice
         np.testing.assert_array_equal(rgb[sel].numpy(), frame.rgb[v, u] / np.float32(255.0))

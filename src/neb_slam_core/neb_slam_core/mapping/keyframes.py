@@ -105,22 +105,21 @@ class KeyframeStore:
         if max(h, w) > np.iinfo(np.int16).max:
             raise ValueError(f"KeyframeStore: a {w}x{h} image has coordinates beyond int16")
         n = max(1, int(round(self.pixel_fraction * h * w)))
-        order_start = self._order(h, w)
-        offset = int(self.rng.integers(h * w))
-        uv = self._orders_uv[order_start + (offset + np.arange(n)) % (h * w)].long().cpu().numpy()
+        d = self.device
+        window = torch.tensor([self._order(h, w), h * w, int(self.rng.integers(h * w))], device=d)
+        uv = self._orders_uv[_order_rows(window, torch.arange(n, device=d))].long().cpu().numpy()
         pick = uv[:, 1] * w + uv[:, 0]
         start = self._n
         self._reserve(start + n)
-        d = self.device
         self._rgb[start : start + n] = torch.as_tensor(frame.rgb.reshape(-1, 3)[pick], device=d)
         self._depth[start : start + n] = torch.as_tensor(frame.depth_m.reshape(-1)[pick], device=d).half()
         self._n = start + n
         k = frame.intrinsics
         self._starts = torch.cat([self._starts, torch.tensor([start], device=d)])
         self._camera = torch.cat([self._camera, torch.tensor([[k.fx, k.fy, k.cx, k.cy]], device=d)])
-        self._window = torch.cat([self._window, torch.tensor([[order_start, h * w, offset]], device=d)])
+        self._window = torch.cat([self._window, window[None]])
         T = np.array(T_world_cam, dtype=np.float64)
-        kf = Keyframe(len(self.keyframes), frame_index, frame.stamp_ns, T, k, start, n, offset)
+        kf = Keyframe(len(self.keyframes), frame_index, frame.stamp_ns, T, k, start, n, int(window[2]))
         self.keyframes.append(kf)
         return kf
 
@@ -162,9 +161,7 @@ class KeyframeStore:
         keyframe id of each ``(N,)``."""
         owner = torch.searchsorted(self._starts, idx, right=True) - 1
         cam = self._camera[owner]
-        window = self._window[owner]
-        row = window[:, 0] + (window[:, 2] + idx - self._starts[owner]) % window[:, 1]
-        uv = self._orders_uv[row].to(torch.float32)
+        uv = self._orders_uv[_order_rows(self._window[owner], idx - self._starts[owner])].to(torch.float32)
         x = (uv[:, 0] - cam[:, 2]) / cam[:, 0]
         y = (uv[:, 1] - cam[:, 3]) / cam[:, 1]
         dirs = torch.stack([x, y, torch.ones_like(x)], dim=-1)
@@ -214,3 +211,10 @@ class KeyframeStore:
     def block_keyframes(self) -> dict[int, list[int]]:
         """The whole index: block id -> ids of its keyframes, ascending (blocks without keyframes left out)."""
         return {b: list(ids) for b, ids in sorted(self._block_keyframes.items()) if ids}
+
+
+def _order_rows(window: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+    """The rows of the pixel orders that hold kept pixels ``local`` (0 = a keyframe's first) of keyframes
+    whose ``window`` is (its order's first row, the order's length, the keyframe's offset in it); ``window``
+    ``(3,)`` for one keyframe or ``(N, 3)`` with ``local`` ``(N,)``."""
+    return window[..., 0] + (window[..., 2] + local) % window[..., 1]

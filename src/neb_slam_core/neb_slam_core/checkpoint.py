@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 
 CHECKPOINT_FILE = "checkpoint.pt"
 #: bumped when the checkpoint's content changes incompatibly
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 
 
 @dataclass

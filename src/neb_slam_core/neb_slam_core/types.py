@@ -87,7 +87,7 @@ class RgbdFrame:
         return self.stamp_ns * 1e-9
 
 
-@dataclass
+@dataclass(slots=True)  # one per frame in a run's log: no per-object dict
 class StepTimings:
     """Milliseconds spent on one frame, by stage."""
 
@@ -141,7 +141,7 @@ class LoopEvent:
         }
 
 
-@dataclass
+@dataclass(slots=True)  # one per frame in a run's log: no per-object dict
 class StepResult:
     """What :meth:`neb_slam_core.slam.Slam.process` did with one frame.
 

@@ -39,7 +39,8 @@ def test_inverted_index_scores_equal_the_dense_computation():
         sharing = [i for i, v in zip(ids, vectors) if np.intersect1d(v.word_ids, q.word_ids).size]
         assert sorted(got) == sorted(sharing)
         for i, s in zip(ids, expected):
-            assert got.get(i, 0.0) == pytest.approx(s, abs=1e-12)
+            # the postings keep float32 weights: a sum of at most 40 of them is within 1e-6 of float64's
+            assert got.get(i, 0.0) == pytest.approx(s, abs=1e-6)
         assert np.all(np.diff(result.scores) <= 0)  # best first
 
 

@@ -122,7 +122,10 @@ def test_backproject_and_match_descriptors_by_hand():
     assert qi.tolist() == [0, 1]
 
 
-def test_tum_frames_far_apart_in_time_overlap_and_are_accepted_with_the_true_pose(tum_dir, vocabulary):
+@pytest.fixture(scope="module")
+def tum_pair(tum_dir, vocabulary):
+    """Two rectified TUM fr1_xyz frames 150 apart that see the same desk, a fresh detector, and both
+    frames described (not added)."""
     from neb_slam_core.datasets import open_dataset
     from neb_slam_core.geometry.rectify import Rectifier
 
@@ -132,11 +135,36 @@ def test_tum_frames_far_apart_in_time_overlap_and_are_accepted_with_the_true_pos
     det = LoopDetector(LoopConfig(), vocabulary)
     ka = det.describe(0, a.stamp_ns, a.rgb, a.depth_m, a.intrinsics)
     kb = det.describe(1, b.stamp_ns, b.rgb, b.depth_m, b.intrinsics)
+    return det, (a, ka), (b, kb)
+
+
+def test_tum_frames_far_apart_in_time_overlap_and_are_accepted_with_the_true_pose(tum_pair):
+    det, (a, ka), (b, kb) = tum_pair
     assert len(ka.features) == det.cfg.n_features
     check = det.verify(kb, ka)
     assert check.accepted, check
     err_m, err_deg = pose_error(check.T_cand_query, invert(a.T_world_cam) @ b.T_world_cam)
     assert err_m < 0.05 and err_deg < 3.0
+
+
+def test_a_kept_keyframe_holds_its_keypoints_with_depth_and_checks_as_the_whole_one(tum_pair):
+    """The detector keeps a keyframe as a candidate: only its keypoints with depth (a candidate's check
+    back-projects them), with the bag-of-words vector of all of them. A check against the kept part gives
+    the outcome the whole keyframe gives."""
+    described_by, (_, whole), (_, query) = tum_pair
+    det = LoopDetector(described_by.cfg, described_by.vocabulary)  # the fixture's stays empty
+    det.add(whole)
+    kept = det.keyframe(0)
+    with_depth = whole.keypoint_depth_m > 0
+    assert 0 < with_depth.sum() < len(whole.features)  # real depth has holes and edges
+    assert len(kept.features) == with_depth.sum() and (kept.keypoint_depth_m > 0).all()
+    assert np.array_equal(kept.features.descriptors, whole.features.descriptors[with_depth])
+    assert np.array_equal(kept.features.keypoints_px, whole.features.keypoints_px[with_depth])
+    assert kept.bow is whole.bow
+    on_whole, on_kept = det.verify(query, whole), det.verify(query, kept)
+    assert on_whole.accepted and on_kept.accepted
+    assert (on_kept.n_matches, on_kept.n_inliers) == (on_whole.n_matches, on_whole.n_inliers)
+    assert np.allclose(on_kept.T_cand_query, on_whole.T_cand_query, atol=1e-6)
 
 
 def test_make_pose_convention_of_the_check(loop_detector):

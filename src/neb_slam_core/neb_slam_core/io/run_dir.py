@@ -87,7 +87,7 @@ TIMINGS_COLUMNS = (
 STATUSES = ("complete", "interrupted", "crashed")
 
 
-@dataclass
+@dataclass(slots=True)  # one per frame: no per-object dict
 class FrameLog:
     """One input frame handed to the engine.
 

@@ -45,7 +45,7 @@ class KeyframeDatabase:
     def __init__(self, n_words: int):
         self.n_words = int(n_words)
         self._post_kf: list[np.ndarray | None] = [None] * self.n_words  # dense keyframe index per entry
-        self._post_w: list[np.ndarray | None] = [None] * self.n_words  # float64 weight per entry
+        self._post_w: list[np.ndarray | None] = [None] * self.n_words  # float32 weight per entry
         self._post_n = np.zeros(self.n_words, dtype=np.int64)  # entries in use per word
         self._ids: list[int] = []  # dense index -> caller id
         self._index: dict[int, int] = {}  # caller id -> dense index
@@ -84,7 +84,7 @@ class KeyframeDatabase:
             if kf is None or n == len(kf):
                 cap = _INITIAL_CAPACITY if kf is None else 2 * len(kf)
                 new_kf = np.empty(cap, dtype=np.int32)
-                new_w = np.empty(cap, dtype=np.float64)
+                new_w = np.empty(cap, dtype=np.float32)
                 if kf is not None:
                     new_kf[:n] = kf[:n]
                     new_w[:n] = self._post_w[w][:n]

@@ -92,6 +92,19 @@ class KeyframeFeatures:
     intrinsics: Intrinsics
     bow: BowVector
 
+    def as_candidate(self) -> KeyframeFeatures:
+        """The part a candidate's geometric check reads: the keypoints with depth (the check
+        back-projects the candidate's matches, so a keypoint without depth never takes part), and the
+        same bag-of-words vector (made from all of them)."""
+        keep = np.flatnonzero(self.keypoint_depth_m > 0)
+        if len(keep) == len(self.keypoint_depth_m):
+            return self
+        f = self.features
+        kept = OrbFeatures(f.keypoints_px[keep], f.descriptors[keep], f.octaves[keep], f.image_size)
+        return KeyframeFeatures(
+            self.keyframe_id, self.stamp_ns, kept, self.keypoint_depth_m[keep], self.intrinsics, self.bow
+        )
+
 
 @dataclass(frozen=True)
 class GeometricCheck:
@@ -297,8 +310,12 @@ class LoopDetector:
         self.vocabulary = vocabulary if vocabulary is not None else Vocabulary.load(cfg.vocabulary)
         self.extractor = OrbExtractor(orb_params(cfg))
         self.database = KeyframeDatabase(self.vocabulary.n_words)
-        self._keyframes: list[KeyframeFeatures] = []  # insertion order = temporal order
+        # insertion order = temporal order; each kept as a candidate (:meth:`KeyframeFeatures.as_candidate`)
+        self._keyframes: list[KeyframeFeatures] = []
         self._position: dict[int, int] = {}
+        # the newest keyframe whole, for its own query: its keypoints without depth still count there
+        # (PnP takes the query's pixels), and a keyframe is queried right after it is added
+        self._newest: KeyframeFeatures | None = None
 
     def __len__(self) -> int:
         return len(self._keyframes)
@@ -325,7 +342,8 @@ class LoopDetector:
         if keyframe.keyframe_id in self._position:
             raise ValueError(f"LoopDetector.add: keyframe {keyframe.keyframe_id} was already added")
         self._position[keyframe.keyframe_id] = len(self._keyframes)
-        self._keyframes.append(keyframe)
+        self._keyframes.append(keyframe.as_candidate())
+        self._newest = keyframe
         self.database.add(keyframe.keyframe_id, keyframe.bow)
 
     def add_keyframe(
@@ -349,10 +367,12 @@ class LoopDetector:
         return float(min(scores)) if scores else float("nan")
 
     def query(self, keyframe_id: int) -> LoopQuery:
-        """Run the paper's loop query for a keyframe already added (see the module docstring)."""
+        """Run the paper's loop query for a keyframe already added (see the module docstring). The newest
+        keyframe queries with all its keypoints, an older one with those it keeps as a candidate."""
         cfg = self.cfg
         p = self._position[int(keyframe_id)]
-        q = self._keyframes[p]
+        newest = self._newest
+        q = newest if newest is not None and newest.keyframe_id == int(keyframe_id) else self._keyframes[p]
         threshold = self.threshold(keyframe_id)
         no_ids = np.zeros(0, np.int64)
         if not np.isfinite(threshold):

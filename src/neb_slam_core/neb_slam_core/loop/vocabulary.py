@@ -116,7 +116,8 @@ class BowVector:
 
     Attributes:
         word_ids: ``(n,)`` int32 distinct word ids, increasing.
-        weights: ``(n,)`` float64 TF-IDF weights, positive, summing to 1 (empty vector: nothing).
+        weights: ``(n,)`` float32 TF-IDF weights, positive, summing to 1 (empty vector: nothing); float32
+            because every keyframe keeps its vector, and scores need no more than 7 digits.
     """
 
     word_ids: np.ndarray
@@ -127,7 +128,7 @@ class BowVector:
 
     @staticmethod
     def empty() -> BowVector:
-        return BowVector(np.zeros(0, np.int32), np.zeros(0, np.float64))
+        return BowVector(np.zeros(0, np.int32), np.zeros(0, np.float32))
 
     def dense(self, n_words: int) -> np.ndarray:
         """The ``(n_words,)`` dense vector (tests and brute-force checks)."""
@@ -143,7 +144,7 @@ def l1_score(a: BowVector, b: BowVector) -> float:
     either vector is empty.
     """
     _, ia, ib = np.intersect1d(a.word_ids, b.word_ids, assume_unique=True, return_indices=True)
-    return float(np.minimum(a.weights[ia], b.weights[ib]).sum())
+    return float(np.minimum(a.weights[ia], b.weights[ib]).sum(dtype=np.float64))
 
 
 # ---------------------------------------------------------------------------------------- vocabulary
@@ -226,7 +227,7 @@ class Vocabulary:
         total = w.sum()
         if total <= 0:
             return BowVector.empty()
-        return BowVector(ids.astype(np.int32), w / total)
+        return BowVector(ids.astype(np.int32), (w / total).astype(np.float32))
 
     # ---------------------------------------------------------------------------------- file I/O
 

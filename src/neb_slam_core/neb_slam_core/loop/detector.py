@@ -74,7 +74,8 @@ def frame_features(
 
 @dataclass(frozen=True)
 class KeyframeFeatures:
-    """What the detector keeps of one keyframe.
+    """One keyframe described for the detector: as a query all its keypoints, as a stored candidate those
+    with depth (:meth:`as_candidate`).
 
     Attributes:
         keyframe_id: the caller's id.
@@ -321,6 +322,7 @@ class LoopDetector:
         return len(self._keyframes)
 
     def keyframe(self, keyframe_id: int) -> KeyframeFeatures:
+        """Keyframe ``keyframe_id`` as kept: the part a candidate's check reads (``as_candidate``)."""
         return self._keyframes[self._position[int(keyframe_id)]]
 
     def describe(

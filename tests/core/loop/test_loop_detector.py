@@ -154,6 +154,8 @@ def test_a_kept_keyframe_holds_its_keypoints_with_depth_and_checks_as_the_whole_
     described_by, (_, whole), (_, query) = tum_pair
     det = LoopDetector(described_by.cfg, described_by.vocabulary)  # the fixture's stays empty
     det.add(whole)
+    assert det.keyframe(0) is whole  # the newest is kept whole until its query is done
+    det.add(query)
     kept = det.keyframe(0)
     with_depth = whole.keypoint_depth_m > 0
     assert 0 < with_depth.sum() < len(whole.features)  # real depth has holes and edges

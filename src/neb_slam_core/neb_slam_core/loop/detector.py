@@ -311,18 +311,18 @@ class LoopDetector:
         self.vocabulary = vocabulary if vocabulary is not None else Vocabulary.load(cfg.vocabulary)
         self.extractor = OrbExtractor(orb_params(cfg))
         self.database = KeyframeDatabase(self.vocabulary.n_words)
-        # insertion order = temporal order; each kept as a candidate (:meth:`KeyframeFeatures.as_candidate`)
+        # insertion order = temporal order. The newest is kept whole for its own query, which comes right
+        # after it is added (its keypoints without depth still count there: PnP takes the query's pixels);
+        # the others as candidates (:meth:`KeyframeFeatures.as_candidate`)
         self._keyframes: list[KeyframeFeatures] = []
         self._position: dict[int, int] = {}
-        # the newest keyframe whole, for its own query: its keypoints without depth still count there
-        # (PnP takes the query's pixels), and a keyframe is queried right after it is added
-        self._newest: KeyframeFeatures | None = None
 
     def __len__(self) -> int:
         return len(self._keyframes)
 
     def keyframe(self, keyframe_id: int) -> KeyframeFeatures:
-        """Keyframe ``keyframe_id`` as kept: the part a candidate's check reads (``as_candidate``)."""
+        """Keyframe ``keyframe_id`` as kept: whole if it is the newest, else the part a candidate's check
+        reads (``as_candidate``)."""
         return self._keyframes[self._position[int(keyframe_id)]]
 
     def describe(
@@ -343,9 +343,10 @@ class LoopDetector:
         """Append a described keyframe (keyframes are added in temporal order)."""
         if keyframe.keyframe_id in self._position:
             raise ValueError(f"LoopDetector.add: keyframe {keyframe.keyframe_id} was already added")
+        if self._keyframes:  # the newest so far has had its query
+            self._keyframes[-1] = self._keyframes[-1].as_candidate()
         self._position[keyframe.keyframe_id] = len(self._keyframes)
-        self._keyframes.append(keyframe.as_candidate())
-        self._newest = keyframe
+        self._keyframes.append(keyframe)
         self.database.add(keyframe.keyframe_id, keyframe.bow)
 
     def add_keyframe(
@@ -373,8 +374,7 @@ class LoopDetector:
         keyframe queries with all its keypoints, an older one with those it keeps as a candidate."""
         cfg = self.cfg
         p = self._position[int(keyframe_id)]
-        newest = self._newest
-        q = newest if newest is not None and newest.keyframe_id == int(keyframe_id) else self._keyframes[p]
+        q = self._keyframes[p]
         threshold = self.threshold(keyframe_id)
         no_ids = np.zeros(0, np.int64)
         if not np.isfinite(threshold):

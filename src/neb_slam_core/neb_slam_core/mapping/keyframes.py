@@ -106,7 +106,8 @@ class KeyframeStore:
             raise ValueError(f"KeyframeStore: a {w}x{h} image has coordinates beyond int16")
         n = max(1, int(round(self.pixel_fraction * h * w)))
         d = self.device
-        window = torch.tensor([self._order(h, w), h * w, int(self.rng.integers(h * w))], device=d)
+        offset = int(self.rng.integers(h * w))
+        window = torch.tensor([self._order(h, w), h * w, offset], device=d)
         uv = self._orders_uv[_order_rows(window, torch.arange(n, device=d))].long().cpu().numpy()
         pick = uv[:, 1] * w + uv[:, 0]
         start = self._n
@@ -119,7 +120,7 @@ class KeyframeStore:
         self._camera = torch.cat([self._camera, torch.tensor([[k.fx, k.fy, k.cx, k.cy]], device=d)])
         self._window = torch.cat([self._window, window[None]])
         T = np.array(T_world_cam, dtype=np.float64)
-        kf = Keyframe(len(self.keyframes), frame_index, frame.stamp_ns, T, k, start, n, int(window[2]))
+        kf = Keyframe(len(self.keyframes), frame_index, frame.stamp_ns, T, k, start, n, offset)
         self.keyframes.append(kf)
         return kf
 

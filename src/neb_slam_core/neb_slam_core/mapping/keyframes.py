@@ -106,8 +106,9 @@ class KeyframeStore:
             raise ValueError(f"KeyframeStore: a {w}x{h} image has coordinates beyond int16")
         n = max(1, int(round(self.pixel_fraction * h * w)))
         d = self.device
+        order_start = self._order(h, w)  # first: a new image size draws its order from the same generator
         offset = int(self.rng.integers(h * w))
-        window = torch.tensor([self._order(h, w), h * w, offset], device=d)
+        window = torch.tensor([order_start, h * w, offset], device=d)
         uv = self._orders_uv[_order_rows(window, torch.arange(n, device=d))].long().cpu().numpy()
         pick = uv[:, 1] * w + uv[:, 0]
         start = self._n

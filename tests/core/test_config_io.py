@@ -71,9 +71,15 @@ def test_base_yaml_is_exactly_the_dataclass_defaults():
 def test_tum_preset_has_the_papers_tum_values_and_ours_for_the_kinect():
     expected = replace(
         BASE,
-        render=replace(BASE.render, truncation_m=0.05, sampling=replace(BASE.render.sampling, far_m=5.0)),
-        # the paper's learning rate; ours: 2048 pixels, colour at the depth image's time
-        tracking=replace(BASE.tracking, lr=1e-2, n_rays=2048, colour_timing=True),
+        # ours: each ray's geometry weighed by its depth's noise
+        render=replace(
+            BASE.render,
+            truncation_m=0.05,
+            sampling=replace(BASE.render.sampling, far_m=5.0),
+            depth_noise_weights=True,
+        ),
+        # the paper's learning rate; ours: 2048 pixels, colour at the depth image's time, weighing 1 in tracking
+        tracking=replace(BASE.tracking, lr=1e-2, n_rays=2048, colour_timing=True, colour_scale=0.2),
         mapping=replace(BASE.mapping, iterations=20),
         # ours: loop fits within 1 px, loop keyframes' depth at 160x120
         loop=replace(BASE.loop, max_fit_rms_px=1.0, depth_stride=4),

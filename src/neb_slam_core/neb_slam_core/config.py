@@ -119,13 +119,22 @@ class LossWeights:
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Volume rendering and its losses: truncation ``truncation_m`` (10 cm; TUM 5 cm)."""
+    """Volume rendering and its losses: truncation ``truncation_m`` (10 cm; TUM 5 cm).
+
+    ``depth_noise_weights`` (ours; False: the paper, every ray's depth counts alike): the depth, SDF and
+    free-space losses of each ray weighed by the inverse variance of its depth measurement, normalised to
+    a mean of 1 over the rays with depth (:func:`~neb_slam_core.render.losses.depth_noise_weights`). A
+    structured-light or stereo camera measures depth with an error that grows with the square of the
+    depth, so a point 3 m away is an order of magnitude less certain than one at 1 m; it applies to both
+    tracking and mapping, which minimise the same objective.
+    """
 
     truncation_m: float = 0.10
     sampling: SamplingConfig = SamplingConfig()
     weights: LossWeights = LossWeights()
     smoothness_points: int = 512
     smoothness_step_m: float = 0.02
+    depth_noise_weights: bool = False
 
 
 @dataclass(frozen=True)
@@ -300,6 +309,13 @@ class TrackingConfig:
     taken at another time than its depth image (the loader's ``colour_stamp_ns`` / ``depth_stamp_ns``
     extras) has its colour resampled to the depth image's time, moved by the motion between the last two
     tracked frames (:mod:`~neb_slam_core.geometry.colour_timing`), before it is tracked and kept.
+
+    ``colour_scale`` (ours; 1: the paper, tracking and mapping weigh the colour loss alike): tracking
+    weighs the colour loss by this times ``render.weights.colour``; mapping keeps the weight as it is. On
+    a hand-held camera the colour image is the part of a frame that motion blur and a colour camera
+    registered to depth only approximately spoil, and a pose fitted to it moves with both; the geometry
+    terms (depth, SDF, free space) constrain a pose in a scene with depth relief on their own (0: geometry
+    alone).
     """
 
     n_rays: int = 1024
@@ -320,6 +336,7 @@ class TrackingConfig:
     relocalise: bool = False
     observed_only: bool = True
     colour_timing: bool = False
+    colour_scale: float = 1.0
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,14 @@ import pytest
 import torch
 
 from neb_slam_core.config import LossWeights
-from neb_slam_core.render.losses import Residual, combine, render_residuals, smoothness_residual
+from neb_slam_core.render.losses import (
+    KINECT_DEPTH_NOISE,
+    Residual,
+    combine,
+    depth_noise_weights,
+    render_residuals,
+    smoothness_residual,
+)
 
 W = LossWeights(colour=5, depth=0.1, sdf=1000, free_space=10, smoothness=1e-6)
 
@@ -73,24 +80,62 @@ def test_weighted_total_in_the_terms_order():
         combine({})
 
 
+@pytest.mark.parametrize("row_weighted", [False, True], ids=["rows-alike", "row-weights"])
 @pytest.mark.parametrize("per_row", ["mean", "sum"])
-def test_entry_weights_give_the_weighted_loss(per_row):
-    """What Gauss-Newton sums, ``sum(w r^2)``, is the weight times the loss Adam differentiates."""
+def test_entry_weights_give_the_weighted_loss(per_row, row_weighted):
+    """What Gauss-Newton sums, ``sum(w r^2)``, is the weight times the loss Adam differentiates, with and
+    without a weight per row."""
     g = torch.Generator().manual_seed(0)
     r = torch.randn(7, 5, generator=g)
     mask = torch.rand(7, 5, generator=g) > 0.4
     mask[3] = False  # a row without entries: not in the mean over rows
-    term = Residual(r, mask, 2.5, "sdf", per_row=per_row)
+    row_w = torch.rand(7, generator=g) * 3 if row_weighted else torch.ones(7)
+    term = Residual(r, mask, 2.5, "sdf", per_row=per_row, row_weight=row_w if row_weighted else None)
     w = term.entry_weights()
     assert torch.isclose((w * r * r).sum(), 2.5 * term.value(), rtol=1e-6)
     assert bool((w[~mask] == 0).all())
-    # by hand for row 0: mean (or sum) of its masked squares, then the mean over the 6 rows with entries
+    # by hand for row 0: mean (or sum) of its masked squares times its weight, then the mean over the 6
+    # rows with entries
     rows = [
-        ((r[i][mask[i]] ** 2).mean() if per_row == "mean" else (r[i][mask[i]] ** 2).sum())
+        row_w[i] * ((r[i][mask[i]] ** 2).mean() if per_row == "mean" else (r[i][mask[i]] ** 2).sum())
         for i in range(7)
         if mask[i].any()
     ]
     assert torch.isclose(term.value(), torch.stack(rows).mean(), rtol=1e-6)
+
+
+def test_depth_noise_weights_follow_the_inverse_variance_and_average_one():
+    a, b, c = KINECT_DEPTH_NOISE
+    assert (a, b, c) == (0.0012, 0.0019, 0.4)
+    depth = torch.tensor([0.4, 2.4, 0.0, 1.4], dtype=torch.float64)
+    w = depth_noise_weights(depth)
+    # sigma: 1.2 mm at 0.4 m, 1.2 + 1.9 * 4 = 8.8 mm at 2.4 m, 1.2 + 1.9 = 3.1 mm at 1.4 m
+    inv = torch.tensor([1 / 1.2**2, 1 / 8.8**2, 0.0, 1 / 3.1**2], dtype=torch.float64)
+    torch.testing.assert_close(w, inv * 3 / inv.sum())
+    assert float(w[2]) == 0.0 and float(w[[0, 1, 3]].mean()) == pytest.approx(1.0)
+    assert float(w[0] / w[1]) == pytest.approx((8.8 / 1.2) ** 2)
+    assert bool((depth_noise_weights(torch.zeros(3)) == 0).all())  # no depth: no weight, no division by 0
+
+
+def test_depth_noise_weighs_the_geometry_terms_of_each_ray_and_leaves_colour_alone():
+    """Two rays, 1 m and 3 m away, each 1 cm off in rendered depth: weighted, the far ray's share of the
+    depth loss is its weight, sigma(1 m)^2 / sigma(3 m)^2 of the near ray's."""
+    rgb, rgb_obs = torch.zeros(2, 3), torch.tensor([[0.1, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    observed = torch.ones(2, dtype=torch.bool)
+    depth_obs = torch.tensor([1.0, 3.0])
+    depth = depth_obs + 0.01
+    r = 2
+    sdf, z, valid = torch.zeros(r, 1), torch.ones(r, 1), torch.zeros(r, 1, dtype=torch.bool)
+    plain = render_residuals(W, 0.1, rgb, depth, sdf, z, valid, observed, rgb_obs, depth_obs)
+    weighted = render_residuals(W, 0.1, rgb, depth, sdf, z, valid, observed, rgb_obs, depth_obs, depth_noise=True)
+    w = depth_noise_weights(depth_obs)
+    assert torch.isclose(plain["depth"].value(), torch.tensor(1e-4))
+    assert torch.isclose(weighted["depth"].value(), (w[0] + w[1]) * 1e-4 / 2)
+    assert float(w[0] / w[1]) == pytest.approx(((0.0012 + 0.0019 * 2.6**2) / (0.0012 + 0.0019 * 0.6**2)) ** 2)
+    for name in ("depth", "sdf", "free_space"):
+        assert weighted[name].row_weight is w or torch.equal(weighted[name].row_weight, w)
+    assert weighted["colour"].row_weight is None
+    assert torch.isclose(weighted["colour"].value(), plain["colour"].value())
 
 
 def test_objective_equals_the_paper_losses_written_out(fitted_small_map):

@@ -44,11 +44,16 @@ def test_apply_step_matches_the_pose_parameterisation():
     np.testing.assert_allclose(apply_step(T, step), pose.numpy()[0], atol=1e-6)
 
 
-@pytest.mark.parametrize("observed_only", [False, True], ids=["whole-blocks", "observed-space"])
-def test_normal_equations_equal_autograd_gradient_of_the_objective(fitted_small_map, observed_only):
+@pytest.mark.parametrize(
+    "observed_only, depth_noise",
+    [(False, False), (True, False), (True, True)],
+    ids=["whole-blocks", "observed-space", "depth-noise-weights"],
+)
+def test_normal_equations_equal_autograd_gradient_of_the_objective(fitted_small_map, observed_only, depth_noise):
     """``2 J^T W r`` is the gradient of the paper's objective in (omega, dt), and the cost is its value:
-    autograd through the renderer is the reference (restricted to observed space or not, alike)."""
-    fm = fitted_small_map
+    autograd through the renderer is the reference (restricted to observed space or not, its rays' geometry
+    weighed by their depth's noise or not, alike)."""
+    fm = replace(fitted_small_map, render=replace(fitted_small_map.render, depth_noise_weights=depth_noise))
     frame = fm.held_out[2]
     T = perturbed(frame.T_world_cam, np.array([0.01, -0.005, 0.008]), np.array([0.5, -0.3, 0.2]))
     px = sample_pixels(frame, 512, np.random.default_rng(1), valid_depth_only=True)
@@ -240,3 +245,24 @@ def test_the_pose_covariance_covers_the_tracking_error_and_stays_informative(fit
         assert np.all(np.abs(errors) <= 3 * sigmas), (errors, sigmas)
         rms = np.sqrt((errors**2).mean(axis=0))
         assert np.all(sigmas.mean(axis=0) <= 8 * rms), (sigmas.mean(axis=0), rms)
+
+
+def test_colour_scale_weighs_the_colour_loss_in_tracking(fitted_small_map):
+    """``colour_scale`` 0 tracks on geometry alone: a frame whose colour is replaced by noise gets the same
+    pose to the bit as with its own colour (the pixels and sample depths drawn do not depend on colour),
+    and that pose is the ground truth's within the tolerance of the full objective; at 1 the noise moves
+    the pose."""
+    fm = fitted_small_map
+    frame = fm.held_out[1]
+    noise = np.random.default_rng(5).integers(0, 256, size=frame.rgb.shape, dtype=np.uint8)
+    scrambled = replace(frame, rgb=noise)
+    T0 = perturbed(frame.T_world_cam, np.array([0.015, -0.01, 0.005]), np.array([0.5, 0.0, -0.5]))
+    poses = {}
+    for scale in (0.0, 1.0):
+        cfg = TrackingConfig(n_rays=1024, iterations=8, method="gauss_newton", colour_scale=scale)
+        for label, f in (("own", frame), ("noise", scrambled)):
+            poses[scale, label] = Tracker(cfg, fm.render, seed=0).track(fm.block_map, f, T0).T_world_cam
+    assert np.array_equal(poses[0.0, "own"], poses[0.0, "noise"])
+    trans, rot = pose_error(poses[0.0, "own"], frame.T_world_cam)
+    assert trans < 0.003 and rot < 0.15, (trans, rot)
+    assert not np.array_equal(poses[1.0, "own"], poses[1.0, "noise"])

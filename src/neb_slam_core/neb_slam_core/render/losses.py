@@ -48,6 +48,8 @@ class Residual:
         per_row: ``"mean"`` or ``"sum"`` of each row's masked squared entries.
         active_above: the Gauss-Newton model takes a masked entry into its matrix only where ``|r|``
             exceeds this (0: every masked entry); the cost a step is judged by always has them all.
+        row_weight: ``(R,)`` a weight per row, multiplying the row's share of the mean over rows (None:
+            1 for every row).
     """
 
     r: torch.Tensor
@@ -57,11 +59,14 @@ class Residual:
     slope: float = 1.0
     per_row: str = "mean"
     active_above: float = 0.0
+    row_weight: torch.Tensor | None = None
 
     def _counts(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         m = self.mask.to(self.r.dtype)
         n = m.sum(dim=-1)
         rows = (n > 0).to(self.r.dtype)
+        if self.row_weight is not None:
+            rows = rows * self.row_weight
         return m, n, rows
 
     def value(self) -> torch.Tensor:
@@ -70,13 +75,13 @@ class Residual:
         per_row = (self.r * self.r * m).sum(dim=-1)
         if self.per_row == "mean":
             per_row = per_row / n.clamp(min=1)
-        return (per_row * rows).sum() / rows.sum().clamp(min=1)
+        return (per_row * rows).sum() / (n > 0).sum().clamp(min=1)
 
     def entry_weights(self) -> torch.Tensor:
         """``(R, K)`` weights ``w`` with ``sum(w r^2) = weight * value()`` (0 off the mask)."""
         m, n, rows = self._counts()
         per_entry = m / (n.clamp(min=1)[:, None] if self.per_row == "mean" else 1.0)
-        return (self.weight / rows.sum().clamp(min=1)) * per_entry
+        return (self.weight / (n > 0).sum().clamp(min=1)) * rows[:, None] * per_entry
 
 
 @dataclass
@@ -105,6 +110,24 @@ def combine(terms: dict[str, Residual]) -> Objective:
     return Objective(terms, values, total)
 
 
+#: the axial noise of a Kinect v1 depth measurement, ``sigma(z) = a + b (z - c)^2`` (metres; Nguyen, Izadi
+#: and Lovell, "Modeling Kinect sensor noise for improved 3D reconstruction and tracking", 3DIMPVT 2012)
+KINECT_DEPTH_NOISE = (0.0012, 0.0019, 0.4)
+
+
+def depth_noise_weights(depth_obs: torch.Tensor) -> torch.Tensor:
+    """``(R,)`` weights of rays with measured depths ``depth_obs`` (0: none): ``1 / sigma(z)^2`` of
+    :data:`KINECT_DEPTH_NOISE`, scaled to a mean of 1 over the rays with depth (0 for the others), so
+    that the losses keep the paper's scale and only their balance across depths changes. The growth with
+    the square of the depth is that of any camera that triangulates depth (structured light, stereo);
+    the constants set how fast the weight falls beyond a metre."""
+    a, b, c = KINECT_DEPTH_NOISE
+    has_depth = depth_obs > 0
+    inverse_variance = torch.where(has_depth, 1.0 / (a + b * (depth_obs - c) ** 2) ** 2, torch.zeros_like(depth_obs))
+    n = has_depth.sum().clamp(min=1)
+    return inverse_variance * (n / inverse_variance.sum().clamp(min=torch.finfo(depth_obs.dtype).tiny))
+
+
 def render_residuals(
     weights: LossWeights,
     truncation_m: float,
@@ -116,6 +139,7 @@ def render_residuals(
     observed: torch.Tensor,
     rgb_obs: torch.Tensor,
     depth_obs: torch.Tensor,
+    depth_noise: bool = False,
 ) -> dict[str, Residual]:
     """The four rendering terms of ``R`` rays with ``S`` samples each.
 
@@ -127,6 +151,8 @@ def render_residuals(
             (:func:`~neb_slam_core.render.volume.observed_rays`).
         rgb_obs, depth_obs: ``(R, 3)``, ``(R,)`` measurements (depth 0: invalid, the ray's depth, SDF and
             free-space terms ignore it).
+        depth_noise: the depth, SDF and free-space rows weighed by :func:`depth_noise_weights` (the
+            config's ``render.depth_noise_weights``).
     Returns:
         ``colour`` (per ray, the mean over channels), ``depth`` (m^2), ``sdf`` (m^2, samples within the
         truncation band of the measured depth) and ``free_space`` (truncation units^2, samples in front of
@@ -138,13 +164,16 @@ def render_residuals(
     obs_sdf = depth_obs[:, None] - z  # metres, positive in front of the surface
     band = sample_valid & has_depth[:, None] & (obs_sdf.abs() <= tr)
     front = sample_valid & has_depth[:, None] & (obs_sdf > tr)
+    rows = depth_noise_weights(depth_obs) if depth_noise else None
     return {
         "colour": Residual(rgb - rgb_obs, observed[:, None].expand(-1, 3), weights.colour, "rgb"),
-        "depth": Residual((depth_m - depth_obs)[:, None], (observed & has_depth)[:, None], weights.depth, "depth"),
-        "sdf": Residual(sdf * tr - obs_sdf, band, weights.sdf, "sdf", slope=tr),
+        "depth": Residual(
+            (depth_m - depth_obs)[:, None], (observed & has_depth)[:, None], weights.depth, "depth", row_weight=rows
+        ),
+        "sdf": Residual(sdf * tr - obs_sdf, band, weights.sdf, "sdf", slope=tr, row_weight=rows),
         # a satisfied free-space sample barely moves the pose; of the many in front of the surface, only
         # the violated ones enter the Gauss-Newton matrix
-        "free_space": Residual(sdf - 1.0, front, weights.free_space, "sdf", active_above=1e-2),
+        "free_space": Residual(sdf - 1.0, front, weights.free_space, "sdf", active_above=1e-2, row_weight=rows),
     }
 
 

@@ -125,6 +125,7 @@ def objective(
         out.observed,
         rays.rgb,
         rays.depth_m,
+        cfg.depth_noise_weights,
     )
     smooth = smoothness_term(block_map, cfg, block_ids, generator) if with_smoothness else None
     if smooth is not None:

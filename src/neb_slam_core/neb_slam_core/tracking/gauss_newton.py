@@ -162,7 +162,9 @@ def evaluate_pose(
     depth, colour = composite(w, z, c)
     obs_d = pixels.depth_m
     ray_valid = observed_rays(valid, z, obs_d, tr)
-    terms = render_residuals(cfg.weights, tr, colour, depth, sd, z, valid, ray_valid, pixels.rgb, obs_d)
+    terms = render_residuals(
+        cfg.weights, tr, colour, depth, sd, z, valid, ray_valid, pixels.rgb, obs_d, cfg.depth_noise_weights
+    )
     cost = float(combine(terms).total)
     # Spatial gradients are needed only where a sample moves the objective: carrying rendering weight, or
     # an active entry of a term on the samples' SDF. Elsewhere a residual's Jacobian is ~0; leaving those

@@ -1,9 +1,10 @@
 """Frame-to-map tracking: optimise one camera pose by rendering the blocks in its frustum.
 
 N_t random pixels with valid depth and the paper's objective without the smoothness term (which does
-not depend on the pose). Only rays whose observed surface lies inside a block in the frustum
-contribute (:func:`~neb_slam_core.render.volume.observed_rays`), and with ``observed_only`` only samples
-in space some keyframe has seen (``block.observed_voxel_m``), so unmapped space never pulls the pose. Two
+not depend on the pose), its colour loss weighed by ``tracking.colour_scale`` (1: as the paper). Only
+rays whose observed surface lies inside a block in the frustum contribute
+(:func:`~neb_slam_core.render.volume.observed_rays`), and with ``observed_only`` only samples in space
+some keyframe has seen (``block.observed_voxel_m``), so unmapped space never pulls the pose. Two
 optimisers (``TrackingConfig.method``):
 
 - ``adam``, the paper's: a fixed number of Adam steps with fresh stratified samples each; the pose
@@ -14,7 +15,7 @@ optimisers (``TrackingConfig.method``):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -68,7 +69,9 @@ class Tracker:
         """``gradients``: how Levenberg-Marquardt gets the samples' spatial gradients
         (:func:`~neb_slam_core.tracking.gauss_newton.spatial_gradients`, or its autograd reference)."""
         self.cfg = cfg
-        self.render_cfg = render_cfg
+        # the objective tracking minimises: the paper's, its colour loss weighed by tracking.colour_scale
+        weights = render_cfg.weights
+        self.render_cfg = replace(render_cfg, weights=replace(weights, colour=weights.colour * cfg.colour_scale))
         self.gradients = gradients
         self.rng = np.random.default_rng(seed)
         self.generator = torch.Generator().manual_seed(seed)

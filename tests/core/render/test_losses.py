@@ -118,22 +118,24 @@ def test_depth_noise_weights_follow_the_inverse_variance_and_average_one():
 
 
 def test_depth_noise_weighs_the_geometry_terms_of_each_ray_and_leaves_colour_alone():
-    """Two rays, 1 m and 3 m away, each 1 cm off in rendered depth: weighted, the far ray's share of the
-    depth loss is its weight, sigma(1 m)^2 / sigma(3 m)^2 of the near ray's."""
+    """Two rays, 1 m away and 1 cm off in rendered depth, 3 m away and 3 cm off: sigma 1.2 + 1.9 * 0.6^2 =
+    1.884 mm and 1.2 + 1.9 * 2.6^2 = 14.044 mm, so the near ray weighs (14.044 / 1.884)^2 = 55.6 times the
+    far one, the weights 2 * 55.6 / 56.6 and 2 / 56.6 (mean 1); the depth loss drops from the plain mean
+    (1 + 9) / 2 cm^2 to (1.965 * 1 + 0.0353 * 9) / 2 cm^2."""
     rgb, rgb_obs = torch.zeros(2, 3), torch.tensor([[0.1, 0.0, 0.0], [0.3, 0.0, 0.0]])
     observed = torch.ones(2, dtype=torch.bool)
-    depth_obs = torch.tensor([1.0, 3.0])
-    depth = depth_obs + 0.01
-    r = 2
-    sdf, z, valid = torch.zeros(r, 1), torch.ones(r, 1), torch.zeros(r, 1, dtype=torch.bool)
+    depth_obs = torch.tensor([1.0, 3.0], dtype=torch.float64)
+    depth = depth_obs + torch.tensor([0.01, 0.03], dtype=torch.float64)
+    sdf, z, valid = torch.zeros(2, 1), torch.ones(2, 1), torch.zeros(2, 1, dtype=torch.bool)
     plain = render_residuals(W, 0.1, rgb, depth, sdf, z, valid, observed, rgb_obs, depth_obs)
     weighted = render_residuals(W, 0.1, rgb, depth, sdf, z, valid, observed, rgb_obs, depth_obs, depth_noise=True)
-    w = depth_noise_weights(depth_obs)
-    assert torch.isclose(plain["depth"].value(), torch.tensor(1e-4))
-    assert torch.isclose(weighted["depth"].value(), (w[0] + w[1]) * 1e-4 / 2)
-    assert float(w[0] / w[1]) == pytest.approx(((0.0012 + 0.0019 * 2.6**2) / (0.0012 + 0.0019 * 0.6**2)) ** 2)
+    ratio = (14.044 / 1.884) ** 2
+    near, far = 2 * ratio / (1 + ratio), 2 / (1 + ratio)
+    torch.testing.assert_close(depth_noise_weights(depth_obs), torch.tensor([near, far], dtype=torch.float64))
+    assert float(plain["depth"].value()) == pytest.approx((1e-4 + 9e-4) / 2)
+    assert float(weighted["depth"].value()) == pytest.approx((near * 1e-4 + far * 9e-4) / 2)
     for name in ("depth", "sdf", "free_space"):
-        assert weighted[name].row_weight is w or torch.equal(weighted[name].row_weight, w)
+        assert torch.equal(weighted[name].row_weight, depth_noise_weights(depth_obs))
     assert weighted["colour"].row_weight is None
     assert torch.isclose(weighted["colour"].value(), plain["colour"].value())
 

@@ -61,27 +61,30 @@ class Residual:
     active_above: float = 0.0
     row_weight: torch.Tensor | None = None
 
-    def _counts(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _counts(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The mask as numbers, each row's count of entries, each row's weight (0 for a row without
+        entries) and the number of rows with entries (at least 1: what the mean over rows divides by)."""
         m = self.mask.to(self.r.dtype)
         n = m.sum(dim=-1)
-        rows = (n > 0).to(self.r.dtype)
+        has_entries = n > 0
+        rows = has_entries.to(self.r.dtype)
         if self.row_weight is not None:
             rows = rows * self.row_weight
-        return m, n, rows
+        return m, n, rows, has_entries.sum().clamp(min=1)
 
     def value(self) -> torch.Tensor:
         """The term's loss (a scalar, without its weight)."""
-        m, n, rows = self._counts()
+        m, n, rows, n_rows = self._counts()
         per_row = (self.r * self.r * m).sum(dim=-1)
         if self.per_row == "mean":
             per_row = per_row / n.clamp(min=1)
-        return (per_row * rows).sum() / (n > 0).sum().clamp(min=1)
+        return (per_row * rows).sum() / n_rows
 
     def entry_weights(self) -> torch.Tensor:
         """``(R, K)`` weights ``w`` with ``sum(w r^2) = weight * value()`` (0 off the mask)."""
-        m, n, rows = self._counts()
+        m, n, rows, n_rows = self._counts()
         per_entry = m / (n.clamp(min=1)[:, None] if self.per_row == "mean" else 1.0)
-        return (self.weight / (n > 0).sum().clamp(min=1)) * rows[:, None] * per_entry
+        return (self.weight / n_rows) * rows[:, None] * per_entry
 
 
 @dataclass

@@ -78,8 +78,11 @@ def test_tum_preset_has_the_papers_tum_values_and_ours_for_the_kinect():
             sampling=replace(BASE.render.sampling, far_m=5.0),
             depth_noise_weights=True,
         ),
-        # the paper's learning rate; ours: 2048 pixels, colour at the depth image's time, weighing 1 in tracking
-        tracking=replace(BASE.tracking, lr=1e-2, n_rays=2048, colour_timing=True, colour_scale=0.2),
+        # the paper's learning rate; ours: 2048 pixels, colour at the depth image's time, weighing 1 in
+        # tracking, poses fused with the constant-velocity prediction
+        tracking=replace(
+            BASE.tracking, lr=1e-2, n_rays=2048, colour_timing=True, colour_scale=0.2, motion_prior_m_s2=1.5
+        ),
         mapping=replace(BASE.mapping, iterations=20),
         # ours: loop fits within 1 px, loop keyframes' depth at 160x120
         loop=replace(BASE.loop, max_fit_rms_px=1.0, depth_stride=4),

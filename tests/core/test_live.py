@@ -79,6 +79,57 @@ def test_predict_from_stamps_scales_the_last_tracked_motion():
     assert np.allclose(paper.predict(350 * ms), step)  # after a failure: the previous pose
 
 
+def test_the_motion_prior_comes_with_the_velocity_and_grows_with_the_frame_gap():
+    """``tracking.motion_prior_m_s2`` 2: with the last two tracked frames 100 ms apart, a frame 100 ms
+    later gets a prior of ``a dt (dt + dt_prev) / 2 = 2 * 0.1 * 0.2 / 2 = 0.02`` m, one 200 ms later (a
+    frame dropped) ``2 * 0.2 * 0.3 / 2 = 0.06`` m. Without two tracked frames there is no velocity and no
+    prior, in either motion model."""
+    ms = 1_000_000
+    step = screw(0.02, 0.01)
+    for model in ("frames", "stamps"):
+        cfg = load_config("ci", overrides=[f"tracking.motion_model={model}", "tracking.motion_prior_m_s2=2.0"])
+        fe = Frontend(cfg, new_block_map(cfg), np.eye(4))
+        fe.keyframe_poses = [np.eye(4)]
+        fe._frames, fe._tracked, fe._ok_streak = [_FramePose(0, 0, np.eye(4))], [0], 1
+        assert fe._motion_prior(100 * ms) is None
+        fe._frames.append(_FramePose(100 * ms, 0, step))
+        fe._tracked, fe._ok_streak = [0, 1], 2
+        prior = fe._motion_prior(200 * ms)
+        np.testing.assert_array_equal(prior.T_world_cam, fe.predict(200 * ms))
+        np.testing.assert_allclose(np.diag(prior.information), [1 / 0.02**2] * 3 + [0, 0, 0], rtol=1e-9)
+        later = fe._motion_prior(300 * ms)
+        np.testing.assert_allclose(np.diag(later.information)[:3], 1 / 0.06**2, rtol=1e-9)
+        fe._tracked, fe._ok_streak = [1], 0  # a failure since: the velocity is forgotten
+        assert fe._motion_prior(300 * ms) is None
+
+
+def test_the_frontend_fuses_each_prediction_with_a_velocity(small_scene, monkeypatch):
+    """Frame 1 (one tracked frame before it) is tracked without a prior; from frame 2 on each tracked
+    pose is fused with the prior of the prediction it was tracked from."""
+    import neb_slam_core.slam as slam_module
+
+    seen = []
+    real_fuse = slam_module.fuse
+
+    def spy(tracked, prior):
+        seen.append(prior)
+        return real_fuse(tracked, prior)
+
+    monkeypatch.setattr(slam_module, "fuse", spy)
+    cfg = load_config("ci", overrides=["tracking.motion_prior_m_s2=2.0"])
+    ds = open_dataset(small_scene)
+    slam = Slam(cfg, T_world_first=ds[0].T_world_cam)
+    predictions = []
+    for k in range(4):
+        if k >= 1:
+            predictions.append(slam.frontend.predict(ds[k].stamp_ns))
+        slam.process(ds[k])
+    assert seen[0] is None
+    for prior, T_pred in zip(seen[1:], predictions[1:], strict=True):
+        np.testing.assert_array_equal(prior.T_world_cam, T_pred)
+        assert prior.information[0, 0] > 0
+
+
 def test_a_fast_turn_shortens_the_gap_to_max_turn_deg():
     ms = 1_000_000
     stamps = [(200 + 10 * k) * ms for k in range(1, 31)]  # frames every 10 ms after the last processed one

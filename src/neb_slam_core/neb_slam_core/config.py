@@ -316,6 +316,17 @@ class TrackingConfig:
     registered to depth only approximately spoil, and a pose fitted to it moves with both; the geometry
     terms (depth, SDF, free space) constrain a pose in a scene with depth relief on their own (0: geometry
     alone).
+
+    ``motion_prior_m_s2``, ``motion_prior_rad_s2`` (ours; 0: the paper, where the motion model's
+    prediction only starts the optimisation): the tracked pose is fused with the constant-velocity
+    prediction, each weighed by the inverse of its covariance (a Kalman update,
+    :func:`~neb_slam_core.tracking.tracker.fuse`): the tracked pose's is the one tracking reports, the
+    prediction's the error these accelerations of the camera (linear, angular) cause over the frame
+    interval (:func:`~neb_slam_core.tracking.tracker.motion_prior`). A pose that the pixels drawn leave
+    uncertain by millimetres then moves towards where the camera's motion puts it. There is a prior
+    where the motion model extrapolates a velocity (two tracked frames before the frame, not after a
+    failure), whichever pose tracking starts from (a ``features`` prediction too); relocalisation's
+    starts carry none. 0 in one leaves that part to the frame alone.
     """
 
     n_rays: int = 1024
@@ -337,6 +348,8 @@ class TrackingConfig:
     observed_only: bool = True
     colour_timing: bool = False
     colour_scale: float = 1.0
+    motion_prior_m_s2: float = 0.0
+    motion_prior_rad_s2: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -446,6 +446,8 @@ RULES: dict[str, Any] = {
     "tracking.observed_only": _Bool(),
     "tracking.colour_timing": _Bool(),
     "tracking.colour_scale": _NON_NEGATIVE,
+    "tracking.motion_prior_m_s2": _NON_NEGATIVE,
+    "tracking.motion_prior_rad_s2": _NON_NEGATIVE,
     "keyframes.every": _POSITIVE_INT,
     "keyframes.every_s": _NON_NEGATIVE,
     "keyframes.pixel_fraction": _Num(0.0, 1.0, lo_open=True, hi_open=False),

@@ -47,7 +47,7 @@ from .mapping.keyframes import Keyframe, KeyframeStore
 from .mapping.mapper import Mapper
 from .render.rays import all_pixels
 from .scene.block_map import BlockMap
-from .tracking.tracker import Tracker, TrackingResult
+from .tracking.tracker import MotionPrior, Tracker, TrackingResult, fuse, motion_prior
 from .types import LoopEvent, RgbdFrame, StepResult, StepTimings
 
 
@@ -361,7 +361,7 @@ class Frontend:
         features = self.describe(frame)
         T_matched = self._matched_pose(features)
         T_pred = T_matched if T_matched is not None else self.predict(frame.stamp_ns)
-        tracked = self.tracker.track(self.block_map, frame, T_pred)
+        tracked = fuse(self.tracker.track(self.block_map, frame, T_pred), self._motion_prior(frame.stamp_ns))
         if self.cfg.tracking.relocalise and (self.lost or not self._passes(tracked)):
             tracked = self._relocalise(frame, T_pred, tracked)
         timings.track_ms = 1e3 * (time.perf_counter() - t0)
@@ -425,12 +425,28 @@ class Frontend:
         """For an engine that cannot take every frame: which of the frames that arrived and are not tracked
         yet (``stamps_ns``, oldest first) to track next (:func:`choose_frame` with ``live.max_gap_s``)."""
         # the step counts from the last frame processed, failed or not, so that a run of failures still
-        # moves the engine forward. A velocity: the last two frames by count (``frames``), or any two
-        # tracked frames (``stamps``).
+        # moves the engine forward
         last = self._frames[-1].stamp_ns if self._frames else None
-        stamps = self.cfg.tracking.motion_model == "stamps"
-        has_velocity = len(self._tracked) >= 2 if stamps else self._ok_streak >= 2
-        return choose_frame(stamps_ns, last, self._max_gap_s(), has_velocity)
+        return choose_frame(stamps_ns, last, self._max_gap_s(), self._has_velocity)
+
+    @property
+    def _has_velocity(self) -> bool:
+        """:meth:`predict` extrapolates a velocity: from the last two frames by count (``frames``, both
+        tracked), or from any two tracked frames (``stamps``)."""
+        if self.cfg.tracking.motion_model == "stamps":
+            return len(self._tracked) >= 2
+        return self._ok_streak >= 2
+
+    def _motion_prior(self, stamp_ns: int) -> MotionPrior | None:
+        """The prior of the frame stamped ``stamp_ns``: :meth:`predict`'s constant-velocity pose
+        (``tracking.motion_prior_*``, :func:`~neb_slam_core.tracking.tracker.motion_prior`), where it
+        extrapolates a velocity. It holds whichever pose tracking started from (a ``features`` prediction
+        too): the start only decides which minimum the optimiser finds."""
+        c = self.cfg.tracking
+        if not self._has_velocity or (c.motion_prior_m_s2 <= 0 and c.motion_prior_rad_s2 <= 0):
+            return None
+        older, newer = (self._frames[i].stamp_ns for i in self._tracked)
+        return motion_prior(self.predict(stamp_ns), (stamp_ns - newer) * 1e-9, (newer - older) * 1e-9, c)
 
     def _max_gap_s(self) -> float:
         """``live.max_gap_s``, shortened to the time the camera takes to turn ``live.max_turn_deg`` at the

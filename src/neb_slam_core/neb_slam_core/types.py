@@ -159,8 +159,9 @@ class StepResult:
         timings: per-stage times.
         loop: the loop detected at this keyframe (applied or not), or None.
         covariance: the tracked pose's covariance, 6x6 over (tx, ty, tz, rx, ry, rz) in the world frame
-            (:func:`~neb_slam_core.tracking.gauss_newton.pose_covariance`): zeros for the first frame of
-            an empty map (it defines the frame), None when tracking failed or gave none.
+            (:func:`~neb_slam_core.tracking.gauss_newton.pose_covariance`, fused with the motion prior's
+            with ``tracking.motion_prior_*``: :func:`~neb_slam_core.tracking.tracker.fuse`): zeros for the
+            first frame of an empty map (it defines the frame), None when tracking failed or gave none.
     """
 
     frame_index: int

@@ -18,7 +18,7 @@ from neb_slam_core.render.sampling import sample_depths
 from neb_slam_core.scene.freeze import frozen
 from neb_slam_core.tracking import tracker as tracker_module
 from neb_slam_core.tracking.gauss_newton import apply_step, evaluate_pose, normal_equations
-from neb_slam_core.tracking.tracker import Tracker
+from neb_slam_core.tracking.tracker import MotionPrior, Tracker, TrackingResult, fuse, motion_prior
 
 
 def perturbed(T: np.ndarray, trans_m: np.ndarray, rot_deg: np.ndarray) -> np.ndarray:
@@ -266,3 +266,65 @@ def test_colour_scale_weighs_the_colour_loss_in_tracking(fitted_small_map):
     trans, rot = pose_error(poses[0.0, "own"], frame.T_world_cam)
     assert trans < 0.003 and rot < 0.15, (trans, rot)
     assert not np.array_equal(poses[1.0, "own"], poses[1.0, "noise"])
+
+
+def test_the_motion_prior_is_the_constant_velocity_error_of_the_accelerations():
+    """At 30 frames/s, 2 m/s^2 leave the prediction ``a dt (dt + dt_prev) / 2 = 2/900`` m off (information
+    ``(900/2)^2``); a frame after a dropped one (dt 1/15 s) ``2 * (1/15) * (1/10) / 2 = 1/150`` m. An
+    acceleration of 0 leaves its part without information; both 0, or a time not positive, no prior."""
+    cfg = TrackingConfig(motion_prior_m_s2=2.0, motion_prior_rad_s2=0.0)
+    T_pred = perturbed(np.eye(4), np.array([0.1, 0.2, 0.3]), np.array([5.0, 0.0, 0.0]))
+    prior = motion_prior(T_pred, 1 / 30, 1 / 30, cfg)
+    np.testing.assert_allclose(prior.information, np.diag([450.0**2] * 3 + [0, 0, 0]), rtol=1e-12)
+    np.testing.assert_array_equal(prior.T_world_cam, T_pred)
+    dropped = motion_prior(T_pred, 1 / 15, 1 / 30, cfg)
+    np.testing.assert_allclose(np.diag(dropped.information)[:3], 150.0**2, rtol=1e-12)
+    angular = motion_prior(T_pred, 1 / 30, 1 / 30, replace(cfg, motion_prior_rad_s2=9.0))
+    np.testing.assert_allclose(np.diag(angular.information)[3:], 100.0**2, rtol=1e-12)  # 9/900 rad = 0.01
+    assert motion_prior(T_pred, 1 / 30, 1 / 30, TrackingConfig()) is None
+    assert motion_prior(T_pred, 0.0, 1 / 30, cfg) is None and motion_prior(T_pred, 1 / 30, 0.0, cfg) is None
+
+
+def test_the_prior_offset_is_the_tracking_update_from_the_prediction():
+    """(tx, ty, tz, rx, ry, rz), the covariance's order: the tracking update (omega, dt) reordered."""
+    T_pred = perturbed(np.eye(4), np.array([0.1, 0.2, 0.3]), np.array([5.0, -10.0, 20.0]))
+    step = np.array([0.0, 0.0, 0.1, 0.01, -0.02, 0.03])  # 0.1 rad about the world z axis, then 1, -2, 3 cm
+    prior = MotionPrior(T_pred, np.eye(6))
+    T = apply_step(T_pred, step)
+    np.testing.assert_allclose(prior.offset(T), np.concatenate([step[3:], step[:3]]), atol=1e-12)
+    np.testing.assert_allclose(prior.moved(prior.offset(T)), T, atol=1e-12)
+
+
+def test_fusing_weighs_the_tracked_pose_and_the_prediction_by_their_information():
+    """A Kalman update worked by hand. The tracked pose is 4 mm along x and 0.02 rad about z off the
+    prediction, with standard deviations 1 mm in x (information 1e6), 3 mm in y and z, 0.01 rad about
+    each axis (1e4). A prior of information 3e6 in translation and 1e4 in rotation leaves x at
+    ``1e6 / (1e6 + 3e6) = 1/4`` of its offset (1 mm) and the rotation at half (0.01 rad), with variances
+    ``1 / 4e6`` and ``1 / 2e4``. Without a prior, or without a covariance, nothing changes."""
+    T_pred = perturbed(np.eye(4), np.array([0.5, -0.2, 1.0]), np.array([10.0, 20.0, -30.0]))
+    prior = MotionPrior(T_pred, np.diag([3e6] * 3 + [1e4] * 3))
+    tracked_offset = np.array([0.004, 0.0, 0.0, 0.0, 0.0, 0.02])
+    covariance = np.diag([1e-6, 9e-6, 9e-6, 1e-4, 1e-4, 1e-4])
+    tracked = TrackingResult(prior.moved(tracked_offset), 0.5, 0.01, 1000, 4, covariance)
+    fused = fuse(tracked, prior)
+    np.testing.assert_allclose(prior.offset(fused.T_world_cam), [0.001, 0, 0, 0, 0, 0.01], atol=1e-12)
+    np.testing.assert_allclose(np.diag(fused.covariance)[[0, 5]], [1 / 4e6, 1 / 2e4], rtol=1e-9)
+    assert (fused.loss, fused.depth_residual_m, fused.n_valid_rays) == (0.5, 0.01, 1000)
+    assert fuse(tracked, None) is tracked
+    assert fuse(replace(tracked, covariance=None), prior).T_world_cam is tracked.T_world_cam
+
+
+def test_a_prior_as_informative_as_the_frame_fuses_halfway(fitted_small_map):
+    """On a map: a frame tracked from a prediction 1.5 cm and 0.6 degrees off, fused with a prior whose
+    information equals the frame's, lands halfway between its tracked pose and the prediction; a prior
+    ten times as informative keeps it within a tenth of that gap of the prediction."""
+    fm = fitted_small_map
+    cfg = TrackingConfig(n_rays=1024, iterations=8, method="gauss_newton")
+    frame = fm.held_out[1]
+    T_pred = perturbed(frame.T_world_cam, np.array([0.01, -0.008, 0.008]), np.array([0.0, 0.6, 0.0]))
+    tracked = Tracker(cfg, fm.render, seed=0).track(fm.block_map, frame, T_pred)
+    information = np.linalg.inv(tracked.covariance)
+    gap = MotionPrior(T_pred, information).offset(tracked.T_world_cam)
+    for scale, share in ((1.0, 0.5), (10.0, 1 / 11)):
+        prior = MotionPrior(T_pred, scale * information)
+        np.testing.assert_allclose(prior.offset(fuse(tracked, prior).T_world_cam), share * gap, atol=1e-9)

@@ -11,6 +11,11 @@ optimisers (``TrackingConfig.method``):
   with the lowest loss seen is kept.
 - ``gauss_newton``: Levenberg-Marquardt on the same objective (see :mod:`.gauss_newton`), a few steps
   with no learning rate, to the pose Adam approaches in tens of steps (``benchmarks/tracking.py``).
+
+A tracked pose comes with its covariance (``TrackingResult.covariance``). :func:`fuse` combines it with
+a :class:`MotionPrior`, the motion model's prediction and the covariance of its error
+(``tracking.motion_prior_m_s2``, ``motion_prior_rad_s2``): a Kalman update, the two estimates weighed by
+their information.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from ..config import RenderConfig, TrackingConfig
 from ..geometry.lie import PoseSet
@@ -60,6 +66,56 @@ class TrackingResult:
     n_valid_rays: int
     iterations: int
     covariance: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class MotionPrior:
+    """The motion model's prediction of a frame's pose and the information (inverse covariance) of its
+    error, over the order of ``TrackingResult.covariance``: (tx, ty, tz, rx, ry, rz), a translation and
+    a world-frame rotation vector, applied as ``t = t_pred + dt``, ``R = exp(omega) R_pred``
+    (1/m^2, 1/rad^2)."""
+
+    T_world_cam: np.ndarray
+    information: np.ndarray
+
+    def offset(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """(tx, ty, tz, rx, ry, rz) of ``T_world_cam`` from the prediction."""
+        omega = Rotation.from_matrix(T_world_cam[:3, :3] @ self.T_world_cam[:3, :3].T).as_rotvec()
+        return np.concatenate([T_world_cam[:3, 3] - self.T_world_cam[:3, 3], omega])
+
+    def moved(self, offset: np.ndarray) -> np.ndarray:
+        """The prediction moved by ``offset`` (the inverse of :meth:`offset`)."""
+        return apply_step(self.T_world_cam, np.concatenate([offset[3:], offset[:3]]))
+
+
+def motion_prior(T_pred: np.ndarray, dt_s: float, dt_prev_s: float, cfg: TrackingConfig) -> MotionPrior | None:
+    """The prior of a constant-velocity prediction ``T_pred`` made ``dt_s`` after the last tracked frame
+    from the motion over the ``dt_prev_s`` before it; None when ``cfg`` sets no prior or a time is not
+    positive.
+
+    The velocity extrapolated is the mean over the previous interval, the velocity half that interval
+    before the last frame. Under an acceleration ``a`` the prediction is then off by
+    ``a dt (dt + dt_prev) / 2`` (``a dt^2`` at a steady frame rate), so ``tracking.motion_prior_m_s2`` and
+    ``motion_prior_rad_s2``, the accelerations expected of the camera, give the prediction's standard
+    deviation in metres and radians; a setting of 0 leaves that part free."""
+    if dt_s <= 0 or dt_prev_s <= 0 or (cfg.motion_prior_m_s2 <= 0 and cfg.motion_prior_rad_s2 <= 0):
+        return None
+    span = dt_s * (dt_s + dt_prev_s) / 2.0
+    info = [1.0 / (a * span) ** 2 if a > 0 else 0.0 for a in (cfg.motion_prior_m_s2, cfg.motion_prior_rad_s2)]
+    return MotionPrior(np.array(T_pred, dtype=np.float64), np.diag(np.repeat(info, 3)))
+
+
+def fuse(tracked: TrackingResult, prior: MotionPrior | None) -> TrackingResult:
+    """``tracked`` with its pose and covariance fused with ``prior`` (a Kalman update: the offset from
+    the prediction ``(I_m + I_p)^-1 I_m d``, of covariance ``(I_m + I_p)^-1``, with ``I_m`` the tracked
+    pose's information, ``d`` its offset and ``I_p`` the prior's); ``tracked`` itself without a prior or
+    a covariance. The loss and depth residual stay those of the pose the frame gave."""
+    if prior is None or tracked.covariance is None:
+        return tracked
+    info = np.linalg.inv(tracked.covariance)
+    covariance = np.linalg.inv(info + prior.information)
+    offset = covariance @ info @ prior.offset(tracked.T_world_cam)
+    return replace(tracked, T_world_cam=prior.moved(offset), covariance=0.5 * (covariance + covariance.T))
 
 
 class Tracker:

@@ -5,11 +5,17 @@ over Ctrl-C and SIGTERM (``_node_main.run_nodes``). Started from here, a stop th
 imports also ends the process with status 0 and one line, instead of a KeyboardInterrupt traceback and
 status 130: this module imports nothing heavy, installs a handler that exits, then imports the node's
 module and runs its ``main()``, whose own handler replaces this one.
+
+The handler ends the process at once (``os._exit``) rather than raising ``SystemExit``: an exception
+raised in a signal handler surfaces inside whichever import is running, and a C extension whose
+initialisation it interrupts (rclpy's) turns it into ``ImportError: initialization failed``. Nothing
+needs cleaning up before the node's ``main()`` runs.
 """
 
 from __future__ import annotations
 
 import importlib
+import os
 import signal
 import sys
 
@@ -24,7 +30,7 @@ def _run(node: str) -> int:
             file=sys.stderr,
             flush=True,
         )
-        raise SystemExit(0)
+        os._exit(0)
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, stop_during_start_up)

@@ -91,16 +91,16 @@ def test_the_motion_prior_comes_with_the_velocity_and_grows_with_the_frame_gap()
         fe = Frontend(cfg, new_block_map(cfg), np.eye(4))
         fe.keyframe_poses = [np.eye(4)]
         fe._frames, fe._tracked, fe._ok_streak = [_FramePose(0, 0, np.eye(4))], [0], 1
-        assert fe._motion_prior(100 * ms) is None
+        assert fe._motion_prior(fe.predict(100 * ms), 100 * ms) is None
         fe._frames.append(_FramePose(100 * ms, 0, step))
         fe._tracked, fe._ok_streak = [0, 1], 2
-        prior = fe._motion_prior(200 * ms)
+        prior = fe._motion_prior(fe.predict(200 * ms), 200 * ms)
         np.testing.assert_array_equal(prior.T_world_cam, fe.predict(200 * ms))
         np.testing.assert_allclose(np.diag(prior.information), [1 / 0.02**2] * 3 + [0, 0, 0], rtol=1e-9)
-        later = fe._motion_prior(300 * ms)
+        later = fe._motion_prior(fe.predict(300 * ms), 300 * ms)
         np.testing.assert_allclose(np.diag(later.information)[:3], 1 / 0.06**2, rtol=1e-9)
         fe._tracked, fe._ok_streak = [1], 0  # a failure since: the velocity is forgotten
-        assert fe._motion_prior(300 * ms) is None
+        assert fe._motion_prior(fe.predict(300 * ms), 300 * ms) is None
 
 
 def test_the_frontend_fuses_each_prediction_with_a_velocity(small_scene, monkeypatch):

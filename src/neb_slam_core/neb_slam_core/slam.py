@@ -360,8 +360,9 @@ class Frontend:
         frame = self._colour_at_depth_time(frame)
         features = self.describe(frame)
         T_matched = self._matched_pose(features)
-        T_pred = T_matched if T_matched is not None else self.predict(frame.stamp_ns)
-        tracked = fuse(self.tracker.track(self.block_map, frame, T_pred), self._motion_prior(frame.stamp_ns))
+        T_motion = self.predict(frame.stamp_ns)
+        T_pred = T_matched if T_matched is not None else T_motion
+        tracked = fuse(self.tracker.track(self.block_map, frame, T_pred), self._motion_prior(T_motion, frame.stamp_ns))
         if self.cfg.tracking.relocalise and (self.lost or not self._passes(tracked)):
             tracked = self._relocalise(frame, T_pred, tracked)
         timings.track_ms = 1e3 * (time.perf_counter() - t0)
@@ -437,16 +438,15 @@ class Frontend:
             return len(self._tracked) >= 2
         return self._ok_streak >= 2
 
-    def _motion_prior(self, stamp_ns: int) -> MotionPrior | None:
-        """The prior of the frame stamped ``stamp_ns``: :meth:`predict`'s constant-velocity pose
-        (``tracking.motion_prior_*``, :func:`~neb_slam_core.tracking.tracker.motion_prior`), where it
-        extrapolates a velocity. It holds whichever pose tracking started from (a ``features`` prediction
-        too): the start only decides which minimum the optimiser finds."""
-        c = self.cfg.tracking
-        if not self._has_velocity or (c.motion_prior_m_s2 <= 0 and c.motion_prior_rad_s2 <= 0):
+    def _motion_prior(self, T_motion: np.ndarray, stamp_ns: int) -> MotionPrior | None:
+        """The prior of the frame stamped ``stamp_ns``: ``T_motion``, :meth:`predict`'s constant-velocity
+        pose for it (``tracking.motion_prior_*``, :func:`~neb_slam_core.tracking.tracker.motion_prior`),
+        where it extrapolates a velocity. It holds whichever pose tracking started from (a ``features``
+        prediction too): the start only decides which minimum the optimiser finds."""
+        if not self._has_velocity:
             return None
         older, newer = (self._frames[i].stamp_ns for i in self._tracked)
-        return motion_prior(self.predict(stamp_ns), (stamp_ns - newer) * 1e-9, (newer - older) * 1e-9, c)
+        return motion_prior(T_motion, (stamp_ns - newer) * 1e-9, (newer - older) * 1e-9, self.cfg.tracking)
 
     def _max_gap_s(self) -> float:
         """``live.max_gap_s``, shortened to the time the camera takes to turn ``live.max_turn_deg`` at the

@@ -227,6 +227,11 @@ def normal_equations(
     return H.double().cpu().numpy(), g.double().cpu().numpy()
 
 
+#: the indices of the update's (omega, dt) in the order of a reported covariance, (tx, ty, tz, rx, ry, rz);
+#: the permutation is its own inverse
+COVARIANCE_ORDER = [3, 4, 5, 0, 1, 2]
+
+
 def pose_covariance(H: np.ndarray, cost: float, n_rays: int) -> np.ndarray | None:
     """The pose's covariance from the Gauss-Newton system ``H`` (6, 6 in (omega, dt)) at the optimum of an
     objective of value ``cost`` over ``n_rays`` rays: ``s^2 H^-1`` with ``s^2 = cost / (n_rays - 6)``,
@@ -241,8 +246,7 @@ def pose_covariance(H: np.ndarray, cost: float, n_rays: int) -> np.ndarray | Non
         cov = np.linalg.inv(H) * (cost / (n_rays - 6))
     except np.linalg.LinAlgError:
         return None
-    order = [3, 4, 5, 0, 1, 2]
-    cov = cov[np.ix_(order, order)]
+    cov = cov[np.ix_(COVARIANCE_ORDER, COVARIANCE_ORDER)]
     cov = 0.5 * (cov + cov.T)
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
         return None

@@ -35,6 +35,7 @@ from ..scene.block_map import BlockMap
 from ..scene.freeze import frozen
 from ..types import RgbdFrame
 from .gauss_newton import (
+    COVARIANCE_ORDER,
     PoseEvaluation,
     apply_step,
     damped_step,
@@ -81,11 +82,11 @@ class MotionPrior:
     def offset(self, T_world_cam: np.ndarray) -> np.ndarray:
         """(tx, ty, tz, rx, ry, rz) of ``T_world_cam`` from the prediction."""
         omega = Rotation.from_matrix(T_world_cam[:3, :3] @ self.T_world_cam[:3, :3].T).as_rotvec()
-        return np.concatenate([T_world_cam[:3, 3] - self.T_world_cam[:3, 3], omega])
+        return np.concatenate([omega, T_world_cam[:3, 3] - self.T_world_cam[:3, 3]])[COVARIANCE_ORDER]
 
     def moved(self, offset: np.ndarray) -> np.ndarray:
         """The prediction moved by ``offset`` (the inverse of :meth:`offset`)."""
-        return apply_step(self.T_world_cam, np.concatenate([offset[3:], offset[:3]]))
+        return apply_step(self.T_world_cam, np.asarray(offset)[COVARIANCE_ORDER])
 
 
 def motion_prior(T_pred: np.ndarray, dt_s: float, dt_prev_s: float, cfg: TrackingConfig) -> MotionPrior | None:
